@@ -1,0 +1,30 @@
+# The README's two commands: `make run` and `make test`. Both build .venv from nothing when it
+# is missing. torch==2.13.0 goes in first: it is the CPU build, and any other torch requirement
+# would pull a CUDA build of several GB.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+RUN_OUT ?= runs/default
+
+.PHONY: run test lint bench clean
+
+$(STAMP): pyproject.toml Makefile
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/rovergate run --out $(RUN_OUT)
+
+test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_loop.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,48 @@
+"""The planner-facing occupancy conditions (paper, equation 2, plus the gate of equation 4).
+
+With S_t the observed surface, O_hat_t the thresholded prediction, FP_t / FN_t the oracle-tagged
+errors at delta = 0.03 d_scene, and O* the reference occupied samples:
+
+========== ==================================== ==========================================
+name        planner receives                      needs
+========== ==================================== ==========================================
+obs         S_t                                   --
+learned-fp  S_t + (O_hat_t - FP_t)                prediction, ground truth (oracle)
+learned     S_t + O_hat_t                         prediction
+learned+fn  S_t + O_hat_t + FN_t                  prediction, ground truth (oracle)
+truth       O*                                    ground truth (oracle)
+gated       S_t + (O_hat_t - U_t)                 prediction
+========== ==================================== ==========================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One way of building the planner-facing occupancy."""
+
+    name: str
+    doc: str
+    needs_prediction: bool
+    needs_truth: bool
+
+
+CONDITIONS: dict[str, Condition] = {c.name: c for c in [
+    Condition("obs", "accumulated observations only: S_t", False, False),
+    Condition("learned-fp", "learned, oracle false positives removed", True, True),
+    Condition("learned", "S_t with the thresholded learned prediction", True, False),
+    Condition("learned+fn", "learned, oracle false negatives restored", True, True),
+    Condition("truth", "reference occupancy O*", False, True),
+    Condition("gated", "learned through the observation-gated filter (eq. 4)", True, False),
+]}
+
+
+def get_condition(name: str) -> Condition:
+    """The named condition; an unknown name gives the list of valid ones."""
+    if name not in CONDITIONS:
+        raise SystemExit(f"error: unknown condition {name!r}; choose one of: "
+                         f"{', '.join(CONDITIONS)}")
+    return CONDITIONS[name]

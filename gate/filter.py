@@ -1,0 +1,89 @@
+"""The observation-gated filter (paper, equation 4).
+
+A predicted point x is *unsupported* at step t when it has been inside at least K acquired
+camera frustums, n_t(x) >= K, and no observed surface point lies within epsilon of it:
+
+    U_t = { x in O_hat_t : n_t(x) >= K  and  min_{p in S_t} ||x - p|| > epsilon }
+
+The planner then receives S_t together with O_hat_t minus U_t. U_t is recomputed from scratch
+every step over the current prediction and all frustums so far, so later surface support
+near a point restores it. Frustum inclusion is the paper's exposure proxy: inside the image,
+in front of the camera, between the sensor's minimum and maximum range. It ignores occlusion.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from rovergate.types import CameraIntrinsics
+
+_CHUNK_FRUSTUMS = 16
+
+
+class ObservationGate:
+    """Keeps the frustums acquired so far and computes U_t of equation 4."""
+
+    def __init__(self, k: int, epsilon_m: float, min_range_m: float, max_range_m: float) -> None:
+        if k < 1 or epsilon_m <= 0:
+            raise ValueError(f"gate needs k >= 1 and epsilon > 0, got k={k}, epsilon={epsilon_m}")
+        self.k = k
+        self.epsilon_m = epsilon_m
+        self.min_range_m = min_range_m
+        self.max_range_m = max_range_m
+        self._R_cam_map: list[np.ndarray] = []
+        self._t_cam_map: list[np.ndarray] = []
+        self._intrinsics: list[CameraIntrinsics] = []
+
+    @property
+    def n_frustums(self) -> int:
+        return len(self._R_cam_map)
+
+    def add_frustum(self, T_map_camera: np.ndarray, intrinsics: CameraIntrinsics) -> None:
+        """Record the frustum of one acquired frame (optical-frame pose in map)."""
+        R = T_map_camera[:3, :3].T
+        self._R_cam_map.append(R)
+        self._t_cam_map.append(-R @ T_map_camera[:3, 3])
+        self._intrinsics.append(intrinsics)
+
+    def exposure_counts(self, points_map: np.ndarray) -> np.ndarray:
+        """n_t(x): (N,) int32 number of recorded frustums that contain each point."""
+        counts = np.zeros(len(points_map), dtype=np.int32)
+        if len(points_map) == 0 or not self._R_cam_map:
+            return counts
+        p = points_map.astype(np.float64)
+        for lo in range(0, self.n_frustums, _CHUNK_FRUSTUMS):
+            R = np.stack(self._R_cam_map[lo:lo + _CHUNK_FRUSTUMS])     # (F, 3, 3)
+            t = np.stack(self._t_cam_map[lo:lo + _CHUNK_FRUSTUMS])     # (F, 3)
+            ks = self._intrinsics[lo:lo + _CHUNK_FRUSTUMS]
+            pc = np.einsum("fij,nj->fni", R, p) + t[:, None, :]          # (F, N, 3)
+            z = pc[..., 2]
+            in_range = (z >= self.min_range_m) & (z <= self.max_range_m)
+            zs = np.where(in_range, z, 1.0)
+            fx = np.array([k.fx for k in ks])[:, None]
+            fy = np.array([k.fy for k in ks])[:, None]
+            cx = np.array([k.cx for k in ks])[:, None]
+            cy = np.array([k.cy for k in ks])[:, None]
+            w = np.array([k.width for k in ks])[:, None]
+            h = np.array([k.height for k in ks])[:, None]
+            u = fx * pc[..., 0] / zs + cx
+            v = fy * pc[..., 1] / zs + cy
+            inside = in_range & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
+            counts += inside.sum(axis=0, dtype=np.int32)
+        return counts
+
+    def support_distance(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
+        """(N,) distance from each point to the nearest observed surface point (inf if none
+        within epsilon: only the comparison with epsilon matters)."""
+        if len(surface_map) == 0:
+            return np.full(len(points_map), np.inf)
+        d, _ = cKDTree(surface_map).query(points_map, k=1, distance_upper_bound=self.epsilon_m)
+        return d
+
+    def unsupported(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
+        """(N,) bool mask of U_t: exposed at least K times with no support within epsilon."""
+        if len(points_map) == 0:
+            return np.zeros(0, dtype=bool)
+        counts = self.exposure_counts(points_map)
+        return (counts >= self.k) & (self.support_distance(points_map, surface_map)
+                                     > self.epsilon_m)

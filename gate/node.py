@@ -1,0 +1,47 @@
+"""The gate as a process: builds the planner-facing occupancy of the mission's condition."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from gate.conditions import get_condition
+from gate.gate import Gate
+from mapper.mapper import NO_MODEL_REASON, has_learned_model
+from rovergate.config import MissionConfig
+from rovergate.logs import init_logging
+from rovergate.node import Input, ModuleNode
+from rovergate.types import MapperOutput, xyz
+
+
+def main(cfg: MissionConfig) -> int:
+    log = init_logging("gate")
+    condition = get_condition(cfg.condition)
+    if condition.needs_prediction and not has_learned_model():
+        raise SystemExit(f"error: condition {cfg.condition!r} cannot run: {NO_MODEL_REASON}")
+    node = ModuleNode("gate", cfg.session,
+                      inputs={"surface": Input("surface"), "predicted": Input("predicted"),
+                              "pose": Input("pose"), "info": Input("camera_info")},
+                      outputs=["planner_map"], log=log)
+    try:
+        reference = None
+        if condition.needs_truth:
+            # Oracle conditions only: the one place outside evaluation that asks for truth.
+            reference = xyz(node.query("truth_occupancy", cfg.ready_timeout_s))
+            log.info("oracle condition %s: %d reference points", condition.name, len(reference))
+        gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
+
+        def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
+            t0 = time.perf_counter()
+            mapped = MapperOutput(step, inputs["surface"], inputs["predicted"])
+            occupancy = gate.step(mapped, inputs["pose"], inputs["info"])
+            seconds = time.perf_counter() - t0
+            node.publish("planner_map", occupancy)
+            return {"gate": seconds}
+
+        node.ready()
+        reason = node.spin(handle, cfg.ready_timeout_s + cfg.step_timeout_s,
+                           last_step=cfg.steps - 1)
+    finally:
+        node.close()
+    return 0 if reason in ("done", "aborted") else 1

@@ -1,0 +1,266 @@
+"""The mission as a process set: launch the modules, run the clock over Zenoh, shut down.
+
+The hub is the mission process itself. It opens a peer session that listens on a free loopback
+port (plus any ``--listen`` endpoints, for subscribers on other machines), declares the
+mission's liveliness token, starts each module as its own OS process connected to it, waits
+for every module's liveliness token (never a fixed sleep), then ticks the mission clock on
+``<ns>/mission/status``: step t starts when the simulator receives the tick of step t and the
+path of step t-1. Coverage is evaluated here from ``<ns>/map/surface`` and the true surface
+samples that the simulator serves on ``<ns>/truth/surface_samples``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import queue
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from mission.coverage import CoverageEvaluator
+from mission.record import MissionRecord
+from rovergate.config import MissionConfig, save_config
+from rovergate.keys import MODULES, Keys
+from rovergate.messages import MessageError, encode
+from rovergate.node import cdr_encoding, check_and_decode
+from rovergate.session import free_loopback_port, open_session
+from rovergate.types import MissionStatus, xyz
+
+log = logging.getLogger("rovergate.mission")
+
+#: Which module reports each stage on the timing topic.
+STAGE_MODULE = {"render": "sim", "execute": "sim", "integrate": "mapper", "gate": "gate",
+                "plan": "planner"}
+
+
+class MissionFailed(RuntimeError):
+    """A module died, or something the mission waited for did not come in time."""
+
+
+class Hub:
+    """The mission's Zenoh session, its module processes, and the step-indexed inbox."""
+
+    WATCHED = ("surface", "path", "execution", "timing", "base_pose")
+
+    def __init__(self, cfg: MissionConfig, out: Path) -> None:
+        self.cfg = cfg
+        self.out = out
+        self.keys = Keys(cfg.session.namespace)
+        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+        hub_cfg = dataclasses.replace(cfg.session, mode="peer", wait_for_peers=0,
+                                      listen=(self.endpoint, *cfg.session.listen))
+        self.session = open_session(hub_cfg)
+        self.inbox: dict[str, dict[int, Any]] = {t: {} for t in self.WATCHED}
+        self.timings: queue.Queue = queue.Queue()
+        self.dropped = 0
+        self._cv = threading.Condition()
+        self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_sample(t))
+                      for t in self.WATCHED]
+        self._alive: set[str] = set()
+        self._alive_sub = self.session.liveliness().declare_subscriber(
+            self.keys.alive_all, self._on_alive, history=True)
+        self._status_pub = self.session.declare_publisher(
+            self.keys.key("status"), encoding=cdr_encoding("status"))
+        self._token = self.session.liveliness().declare_token(self.keys.alive("mission"))
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._logs: list[Any] = []
+
+    def _on_sample(self, topic: str):
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                step, value = check_and_decode(topic, sample)
+            except MessageError as exc:
+                self.dropped += 1
+                log.warning("dropped a message on %s: %s", self.keys.key(topic), exc)
+                return
+            with self._cv:
+                if topic == "timing":
+                    self.timings.put(value)
+                else:
+                    self.inbox[topic][step] = value
+                self._cv.notify_all()
+        return callback
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._cv:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(name)
+            else:
+                self._alive.discard(name)
+            self._cv.notify_all()
+
+    # --- processes ------------------------------------------------------------------------
+
+    def launch(self, config_path: Path) -> None:
+        """Start every module as its own OS process, logging to ``out/logs/<module>.log``."""
+        logs = self.out / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        for name in MODULES:
+            cmd = [sys.executable, "-m", "rovergate.cli", name, "--config", str(config_path),
+                   "--mode", "peer", "--connect", self.endpoint, "--listen", "tcp/127.0.0.1:0",
+                   "--namespace", self.cfg.session.namespace,
+                   "--wait-for-peers", str(len(MODULES))]
+            f = open(logs / f"{name}.log", "w")  # noqa: SIM115 -- closed in shutdown()
+            self._logs.append(f)
+            self.procs[name] = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
+                                                stdin=subprocess.DEVNULL)
+            log.info("started %s (pid %d)", name, self.procs[name].pid)
+
+    def check_processes(self) -> None:
+        for name, p in self.procs.items():
+            code = p.poll()
+            if code is not None:
+                raise MissionFailed(
+                    f"module {name!r} exited with code {code} during the mission; its log is "
+                    f"{self.out / 'logs' / (name + '.log')}:\n{_tail(self.out, name)}")
+
+    def _wait(self, ready, what: str, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        with self._cv:
+            while not ready():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise MissionFailed(f"timed out after {timeout_s:.0f} s waiting for {what}")
+                self._cv.wait(min(left, 0.2))
+                self.check_processes()
+
+    def wait_ready(self) -> None:
+        self._wait(lambda: self._alive.issuperset(MODULES),
+                   "the liveliness tokens of " + ", ".join(
+                       f"{self.keys.alive(m)}" for m in MODULES if m not in self._alive),
+                   self.cfg.ready_timeout_s)
+
+    def wait_message(self, topic: str, step: int) -> Any:
+        self._wait(lambda: step in self.inbox[topic],
+                   f"{self.keys.key(topic)} of step {step}", self.cfg.step_timeout_s)
+        with self._cv:
+            return self.inbox[topic].pop(step)
+
+    def query_truth_surface(self) -> Any:
+        key = self.keys.key("truth_surface")
+        deadline = time.monotonic() + self.cfg.ready_timeout_s
+        while time.monotonic() < deadline:
+            self.check_processes()
+            for reply in self.session.get(key, timeout=30.0):
+                if reply.ok is not None:
+                    return xyz(check_and_decode("truth_surface", reply.ok)[1])
+            time.sleep(0.2)
+        raise MissionFailed(f"timed out waiting for an answer on {key}")
+
+    def publish_status(self, status: MissionStatus) -> None:
+        self._status_pub.put(encode("status", status))
+
+    def shutdown(self, timeout_s: float = 30.0) -> dict[str, int | None]:
+        """Wait for the modules to exit (they stop on the final status), then close."""
+        codes: dict[str, int | None] = {}
+        deadline = time.monotonic() + timeout_s
+        for name, p in self.procs.items():
+            try:
+                codes[name] = p.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.error("%s did not exit within %.0f s; terminating it", name, timeout_s)
+                p.terminate()
+                try:
+                    codes[name] = p.wait(5)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    codes[name] = p.wait()
+        for f in self._logs:
+            f.close()
+        self._token.undeclare()
+        for s in self._subs:
+            s.undeclare()
+        self._alive_sub.undeclare()
+        self.session.close()
+        return codes
+
+    def kill_all(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs.values():
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def _tail(out: Path, name: str, lines: int = 15) -> str:
+    path = out / "logs" / f"{name}.log"
+    try:
+        text = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    return "\n".join("    " + line for line in text[-lines:])
+
+
+def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
+    """Run the mission as a process set over Zenoh; raises MissionFailed on a fault."""
+    out = Path(cfg.out)
+    record = MissionRecord(mode="processes")
+    t_start = time.perf_counter()
+    hub = Hub(cfg, out)
+    config_path = out / "config.json"
+    save_config(cfg, config_path)
+    state = "aborted"
+    collisions = 0
+    try:
+        hub.launch(config_path)
+        hub.wait_ready()
+        log.info("all modules ready: %s", ", ".join(MODULES))
+        evaluator = CoverageEvaluator(hub.query_truth_surface(),
+                                      cfg.eval.tau_frac * cfg.scene.d_scene_m)
+        t_step = time.perf_counter()
+        for t in range(cfg.steps + 1):
+            cov = record.coverage[-1] if record.coverage else 0.0
+            hub.publish_status(MissionStatus(t, cfg.steps, "running", cfg.condition, cov,
+                                             collisions))
+            if t > 0:
+                record.paths.append(hub.wait_message("path", t - 1))
+                report = hub.wait_message("execution", t - 1)
+                collisions += int(report.collided)
+                record.executions.append(report)
+            surface = hub.wait_message("surface", t)
+            base = hub.wait_message("base_pose", t)
+            if t > 0:
+                record.step_wall_s.append(time.perf_counter() - t_step)
+                t_step = time.perf_counter()
+            record.base_xy.append((float(base.position[0]), float(base.position[1])))
+            record.coverage.append(evaluator.update(xyz(surface)))
+            if on_step:
+                on_step(t, record.coverage[-1])
+            if t == cfg.steps:
+                record.surface_xyz = xyz(surface)
+        state = "done"
+    finally:
+        final = MissionStatus(len(record.coverage) - 1 if record.coverage else 0, cfg.steps,
+                              state, cfg.condition,
+                              record.coverage[-1] if record.coverage else 0.0, collisions)
+        try:
+            hub.publish_status(final)
+        finally:
+            if state != "done":
+                hub.kill_all()
+            codes = hub.shutdown()
+    dropped: dict[str, int] = {}
+    while not hub.timings.empty():
+        timing = hub.timings.get()
+        record.add_stage(timing.module, timing.compute_s)
+        module = STAGE_MODULE.get(timing.module, timing.module)
+        dropped[module] = max(dropped.get(module, 0), timing.dropped_total)
+    record.dropped_messages = sum(dropped.values()) + hub.dropped
+    record.wall_s = time.perf_counter() - t_start
+    bad = {n: c for n, c in codes.items() if c != 0}
+    if bad:
+        raise MissionFailed("modules did not exit cleanly: " + ", ".join(
+            f"{n} (exit code {c})" for n, c in bad.items()))
+    return record
+
+

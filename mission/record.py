@@ -1,0 +1,61 @@
+"""What a mission records, whichever way it ran, and the metrics derived from it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mission.coverage import auc
+from rovergate.types import ExecutionReport, PlanPath
+
+
+@dataclass
+class MissionRecord:
+    """Per-step history of one mission."""
+
+    coverage: list[float] = field(default_factory=list)
+    """Coverage after poses 0..T (T+1 values)."""
+    base_xy: list[tuple[float, float]] = field(default_factory=list)
+    """Rover base position at each pose 0..T."""
+    executions: list[ExecutionReport] = field(default_factory=list)
+    paths: list[PlanPath] = field(default_factory=list)
+    stage_s: dict[str, list[float]] = field(default_factory=dict)
+    """Compute time of each stage (render, integrate, gate, plan, execute) per step."""
+    step_wall_s: list[float] = field(default_factory=list)
+    """Wall time of each step of the loop, as the mission clock saw it."""
+    suppressed: list[int] = field(default_factory=list)
+    surface_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    wall_s: float = 0.0
+    dropped_messages: int = 0
+    mode: str = "in-process"
+
+    def add_stage(self, stage: str, seconds: float) -> None:
+        self.stage_s.setdefault(stage, []).append(seconds)
+
+    def metrics(self) -> dict:
+        """The figures of metrics.json."""
+        med = {k: float(np.median(v)) for k, v in sorted(self.stage_s.items()) if v}
+        stage_sum = np.zeros(len(self.step_wall_s))
+        for name, values in self.stage_s.items():
+            if name in ("render", "integrate", "gate", "plan", "execute"):
+                n = min(len(values), len(stage_sum))
+                stage_sum[:n] += values[:n]
+        transport = np.maximum(np.asarray(self.step_wall_s) - stage_sum, 0.0)
+        return {
+            "mode": self.mode,
+            "steps": len(self.coverage) - 1,
+            "coverage": self.coverage,
+            "final_coverage": self.coverage[-1] if self.coverage else 0.0,
+            "auc": auc(self.coverage),
+            "collisions": int(sum(e.collided for e in self.executions)),
+            "min_clearance_m": float(min((e.min_clearance_m for e in self.executions),
+                                         default=float("nan"))),
+            "path_length_m": float(sum(e.path_length_m for e in self.executions)),
+            "median_stage_s": med,
+            "median_transport_s": float(np.median(transport)) if len(transport) else 0.0,
+            "median_step_s": float(np.median(self.step_wall_s)) if self.step_wall_s else 0.0,
+            "wall_s": self.wall_s,
+            "dropped_messages": self.dropped_messages,
+            "observed_points": int(len(self.surface_xyz)),
+        }

@@ -1,0 +1,62 @@
+"""The run's outputs: metrics.json, coverage.csv, coverage.png and a top-down map picture."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from mission.record import MissionRecord  # noqa: E402
+from rovergate.config import MissionConfig  # noqa: E402
+
+
+def write_report(cfg: MissionConfig, record: MissionRecord, out: Path) -> dict:
+    """Write every output file of a run into ``out``; returns the metrics."""
+    out.mkdir(parents=True, exist_ok=True)
+    metrics = record.metrics()
+    metrics.update(scene=cfg.scene.name, start=cfg.start, seed=cfg.seed,
+                   condition=cfg.condition, d_scene_m=cfg.scene.d_scene_m,
+                   tau_m=cfg.eval.tau_frac * cfg.scene.d_scene_m)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    with open(out / "coverage.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["step", "coverage"])
+        for t, c in enumerate(record.coverage):
+            w.writerow([t, repr(c)])
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(range(len(record.coverage)), record.coverage, lw=2)
+    ax.set(xlabel="planning step", ylabel="surface coverage", ylim=(0, 1),
+           title=f"{cfg.scene.name}/{cfg.start}, {cfg.condition}: final "
+                 f"{metrics['final_coverage']:.3f}, AUC {metrics['auc']:.3f}")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "coverage.png", dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 6))
+    s = record.surface_xyz
+    if len(s):
+        sc = ax.scatter(s[:, 0], s[:, 1], c=s[:, 2], s=0.3, cmap="terrain")
+        fig.colorbar(sc, ax=ax, label="z (m)", shrink=0.8)
+    if record.base_xy:
+        xy = list(zip(*record.base_xy, strict=True))
+        ax.plot(xy[0], xy[1], "-o", color="crimson", ms=2, lw=1.2, label="rover path")
+        ax.plot(*record.base_xy[0], "k^", ms=8, label="start")
+    hits = [record.base_xy[i + 1] for i, e in enumerate(record.executions)
+            if e.collided and i + 1 < len(record.base_xy)]
+    if hits:
+        ax.plot(*zip(*hits, strict=True), "rx", ms=10, mew=2, label="collision")
+    b = cfg.scene.bounds_m
+    ax.set(xlim=(b[0], b[3]), ylim=(b[1], b[4]), aspect="equal", xlabel="x (m)", ylabel="y (m)",
+           title="observed surface S_T (top-down) and rover path")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "map_topdown.png", dpi=120)
+    plt.close(fig)
+    return metrics

@@ -1,0 +1,143 @@
+"""Planners: choose where to look next and how to get there.
+
+The contract of a planner (:class:`Planner`): given the step, the planner-facing occupancy of
+that step and the rover's base pose, return a :class:`~rovergate.types.PlanPath` of rover base
+poses whose first pose is the current one. The same map must serve both gain and collision
+checking. A planner must be deterministic for a given seed and step.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from planner.collision import OccupancyCollisionModel
+from planner.gain import render_gain
+from planner.motion import path_length, plan_se2
+from rovergate.config import MissionConfig
+from rovergate.platform import camera_from_base
+from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
+
+
+@dataclass
+class PlanResult:
+    """A chosen path and why."""
+
+    path: PlanPath
+    gain: int
+    """Novel points the chosen view is expected to see."""
+    attempts: int
+    """Candidates sent to OMPL before one was feasible."""
+    reason: str
+    """'best-feasible', 'rotate' (nothing feasible: turn in place) or 'stay'."""
+
+
+class Planner(abc.ABC):
+    """Base class of planners; see the module docstring for the contract."""
+
+    def __init__(self, cfg: MissionConfig) -> None:
+        self.cfg = cfg
+
+    @abc.abstractmethod
+    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
+        """The motion for step ``step``."""
+
+
+def novel_mask(occupancy: PlannerMap, observed_min_views: int, radius_m: float) -> np.ndarray:
+    """(N,) bool: map points not yet observed.
+
+    An observed-surface point is novel until it was seen in ``observed_min_views`` frames
+    (surface glimpsed once, far away or at a grazing angle, is worth another look). Any other
+    point (prediction, oracle, truth) is novel unless a well-observed surface point lies within
+    ``radius_m`` of it.
+    """
+    pts = occupancy.points
+    src, views = pts["source"], pts["views"]
+    observed = src == Source.OBSERVED
+    well = observed & (views >= observed_min_views)
+    novel = observed & ~well
+    others = np.flatnonzero(~observed)
+    if len(others):
+        p = xyz(pts)
+        if well.any():
+            d, _ = cKDTree(p[well]).query(p[others], distance_upper_bound=radius_m)
+            novel[others] = d > radius_m
+        else:
+            novel[others] = True
+    return novel
+
+
+class GreedyPlanner(Planner):
+    """Next best view within the motion budget, as the paper's fixed planner does per step.
+
+    Sample candidate rover poses within ``max_step_m``; score each by rendered gain on the
+    planner-facing map; try them best first with OMPL (RRT-Connect in SE(2), FCL against the
+    same map) until one is feasible within the budget.
+    """
+
+    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
+        cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
+        x0, y0, yaw0 = float(T_map_base.position[0]), float(T_map_base.position[1]), \
+            T_map_base.yaw
+        z0 = float(T_map_base.position[2])
+        points = xyz(occupancy.points)
+        bounds = cfg.scene.bounds_m
+        model = OccupancyCollisionModel(points, cfg.rover, bounds, pc.ground_cell_m,
+                                        pc.obstacle_voxel_m, fallback_ground_z=z0)
+        rng = np.random.default_rng([cfg.seed, step])
+        r = pc.max_step_m * np.sqrt(rng.uniform(0, 1, pc.n_candidates))
+        th = rng.uniform(-np.pi, np.pi, pc.n_candidates)
+        yaw = rng.uniform(-np.pi, np.pi, pc.n_candidates)
+        margin = 0.5
+        cx = np.clip(x0 + r * np.cos(th), bounds[0] + margin, bounds[3] - margin)
+        cy = np.clip(y0 + r * np.sin(th), bounds[1] + margin, bounds[4] - margin)
+        candidates = list(zip(cx.tolist(), cy.tolist(), yaw.tolist(), strict=True))
+        cameras = [camera_from_base(Pose.from_xyz_yaw(x, y, model.ground_z(x, y), a).matrix(),
+                                    sensor) for x, y, a in candidates]
+        k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
+                                      sensor.vfov_deg).scaled(pc.gain_resolution)
+        novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
+        gains = render_gain(points, novel, cameras, k, sensor.min_range_m, sensor.max_range_m,
+                            pc.zbuffer_tolerance_m)
+        travel = np.hypot(cx - x0, cy - y0)
+        order = np.lexsort((travel, -gains))  # best gain first, then the nearer
+        box = (bounds[0], bounds[1], bounds[3], bounds[4])
+        attempts = 0
+        for i in order[: pc.max_attempts]:
+            attempts += 1
+            goal = candidates[i]
+            if not model.is_free(*goal):
+                continue
+            path = plan_se2((x0, y0, yaw0), goal, model.is_free, box,
+                            seed=cfg.seed * 100_003 + step * 101 + attempts,
+                            max_checks=pc.ompl_max_checks)
+            if path is None or path_length(path) > pc.max_step_m:
+                continue
+            return PlanResult(self._to_path(step, path, model), int(gains[i]), attempts,
+                              "best-feasible")
+        turn = (x0, y0, yaw0 + np.pi / 2)
+        if model.is_free(*turn):
+            return PlanResult(self._to_path(step, [(x0, y0, yaw0), turn], model), 0, attempts,
+                              "rotate")
+        return PlanResult(PlanPath(step, [T_map_base]), 0, attempts, "stay")
+
+    @staticmethod
+    def _to_path(step: int, states: list[tuple[float, float, float]],
+                 model: OccupancyCollisionModel) -> PlanPath:
+        return PlanPath(step, [Pose.from_xyz_yaw(x, y, model.ground_z(x, y), a)
+                               for x, y, a in states])
+
+
+#: Planner registry: ``--planner.name`` chooses.
+PLANNERS: dict[str, type[Planner]] = {"greedy": GreedyPlanner}
+
+
+def make_planner(cfg: MissionConfig) -> Planner:
+    """The configured planner; an unknown name gives the list of valid ones."""
+    if cfg.planner.name not in PLANNERS:
+        raise SystemExit(f"error: unknown planner {cfg.planner.name!r}; choose one of: "
+                         f"{', '.join(PLANNERS)}")
+    return PLANNERS[cfg.planner.name](cfg)

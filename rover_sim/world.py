@@ -1,0 +1,79 @@
+"""The pybullet world: the scene's meshes, the rover's body, and depth rendering.
+
+pybullet runs in DIRECT mode (no window) and renders with its CPU TinyRenderer. The rover is
+moved kinematically (its pose is set, no dynamics). Pixels that see the rover itself are
+returned as NaN, like a real depth camera's self-filter.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pybullet as pb
+
+from rover_sim.scene import Scene
+from rovergate.config import RoverConfig, SensorConfig
+from rovergate.types import CameraIntrinsics, matrix_to_quat
+
+NEAR_M = 0.05
+
+
+class PyBulletWorld:
+    """Owns one pybullet client with the scene and the rover in it."""
+
+    def __init__(self, scene: Scene, sensor: SensorConfig, rover: RoverConfig) -> None:
+        self.sensor = sensor
+        self.client = pb.connect(pb.DIRECT)
+        c = self.client
+        for mesh, rgba in [(scene.terrain, [0.72, 0.45, 0.3, 1]),
+                           (scene.objects_mesh, [0.55, 0.4, 0.33, 1])]:
+            vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
+                                       indices=mesh.faces.ravel().tolist(), rgbaColor=rgba,
+                                       physicsClientId=c)
+            pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=c)
+        body_h = rover.body_top_m - rover.clearance_m
+        body = pb.createVisualShape(
+            pb.GEOM_BOX, halfExtents=[rover.length_m / 2, rover.width_m / 2, body_h / 2],
+            visualFramePosition=[0, 0, rover.clearance_m + body_h / 2],
+            rgbaColor=[0.9, 0.9, 0.9, 1], physicsClientId=c)
+        self.rover_id = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=body,
+                                           physicsClientId=c)
+        mast_h = sensor.mast_height_m - rover.body_top_m
+        mast = pb.createVisualShape(
+            pb.GEOM_CYLINDER, radius=0.04, length=mast_h,
+            visualFramePosition=[sensor.mast_forward_m, 0, rover.body_top_m + mast_h / 2],
+            physicsClientId=c)
+        self.mast_id = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=mast,
+                                          physicsClientId=c)
+        self.far_m = sensor.max_range_m * 1.5
+        self.intrinsics = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
+                                                    sensor.vfov_deg)
+        self._projection = pb.computeProjectionMatrixFOV(
+            fov=sensor.vfov_deg, aspect=sensor.width_px / sensor.height_px, nearVal=NEAR_M,
+            farVal=self.far_m, physicsClientId=c)
+
+    def set_rover_pose(self, T_map_base: np.ndarray) -> None:
+        q = matrix_to_quat(T_map_base[:3, :3])
+        for body in (self.rover_id, self.mast_id):
+            pb.resetBasePositionAndOrientation(body, T_map_base[:3, 3].tolist(), q.tolist(),
+                                               physicsClientId=self.client)
+
+    def render_depth(self, T_map_camera: np.ndarray) -> np.ndarray:
+        """(H, W) float32 z-depth in metres from the optical frame pose; NaN without a return."""
+        s = self.sensor
+        eye = T_map_camera[:3, 3]
+        forward, down = T_map_camera[:3, 2], T_map_camera[:3, 1]
+        view = pb.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), (-down).tolist(),
+                                    physicsClientId=self.client)
+        _, _, _, zbuf, seg = pb.getCameraImage(
+            s.width_px, s.height_px, view, self._projection, renderer=pb.ER_TINY_RENDERER,
+            physicsClientId=self.client)
+        zbuf = np.asarray(zbuf, dtype=np.float64).reshape(s.height_px, s.width_px)
+        seg = np.asarray(seg).reshape(s.height_px, s.width_px)
+        depth = self.far_m * NEAR_M / (self.far_m - (self.far_m - NEAR_M) * zbuf)
+        invalid = (zbuf >= 1.0 - 1e-7) | (depth < s.min_range_m) | (depth > s.max_range_m)
+        invalid |= (seg == self.rover_id) | (seg == self.mast_id)
+        return np.where(invalid, np.nan, depth).astype(np.float32)
+
+    def close(self) -> None:
+        if pb.isConnected(self.client):
+            pb.disconnect(self.client)

@@ -1,0 +1,82 @@
+"""The ``rovergate`` command: ``run`` a mission, or start one module (``sim``, ``mapper``,
+``gate``, ``planner``) alone.
+
+Every subcommand takes the mission config as flags (``--help`` lists them); ``--config FILE``
+loads a saved ``config.json`` first, and flags given after it override it. The session flags
+``--mode``, ``--connect``, ``--listen`` and ``--namespace`` join the Zenoh network.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import tyro
+
+from rovergate.config import MissionConfig, load_config
+
+USAGE = """usage: rovergate COMMAND [--config FILE] [flags]
+
+commands:
+  run       run a mission (the process set over Zenoh, or --in-process) and write its report
+  sim       start the simulator process alone
+  mapper    start the mapper process alone
+  gate      start the gate process alone
+  planner   start the planner process alone
+
+`rovergate COMMAND --help` lists the flags."""
+
+
+def _module_main(name: str) -> Callable[[MissionConfig], int]:
+    def main(cfg: MissionConfig) -> int:
+        from rover_sim.scene import resolve_scene
+        resolve_scene(cfg.scene)
+        if name == "sim":
+            from rover_sim.node import main as m
+        elif name == "mapper":
+            from mapper.node import main as m
+        elif name == "gate":
+            from gate.node import main as m
+        else:
+            from planner.node import main as m
+        return m(cfg)
+    return main
+
+
+def _run(cfg: MissionConfig) -> int:
+    from mission.run import main
+    return main(cfg)
+
+
+COMMANDS: dict[str, Callable[[MissionConfig], int]] = {
+    "run": _run, **{n: _module_main(n) for n in ("sim", "mapper", "gate", "planner")}}
+
+
+def parse(argv: list[str]) -> tuple[str, MissionConfig]:
+    """Split ``argv`` into the command and its resolved config."""
+    if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
+        if argv and argv[0] not in ("-h", "--help"):
+            print(f"error: unknown command {argv[0]!r}", file=sys.stderr)
+        print(USAGE, file=sys.stderr)
+        raise SystemExit(0 if argv and argv[0] in ("-h", "--help") else 2)
+    command, rest = argv[0], list(argv[1:])
+    default = MissionConfig()
+    if "--config" in rest:
+        i = rest.index("--config")
+        if i + 1 >= len(rest):
+            raise SystemExit("error: --config needs a file: --config runs/latest/config.json")
+        default = load_config(Path(rest[i + 1]))
+        del rest[i:i + 2]
+    cfg = tyro.cli(MissionConfig, args=rest, default=default, prog=f"rovergate {command}",
+                   description=COMMANDS[command].__doc__ or USAGE)
+    return command, cfg
+
+
+def main(argv: list[str] | None = None) -> None:
+    command, cfg = parse(sys.argv[1:] if argv is None else argv)
+    raise SystemExit(COMMANDS[command](cfg))
+
+
+if __name__ == "__main__":
+    main()

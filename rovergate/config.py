@@ -1,0 +1,216 @@
+"""The configuration tree of a mission: one nested dataclass, the CLI is generated from it.
+
+Field docstrings are the ``--help`` text. Units are part of field names. ``rovergate run``
+saves the resolved tree as ``config.json`` beside the run's outputs, and every module process
+of the run loads that same file (``--config``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tyro
+
+from rovergate.session import SessionConfig
+
+
+@dataclass
+class SceneConfig:
+    """Which world to map."""
+
+    name: str = "arch_field"
+    """Scene name (see `rovergate run --help`; procedural scenes are deterministic)."""
+    d_scene_m: float = 0.0
+    """Diagonal of the scene's box of interest. 0: take it from the scene (recommended)."""
+    bounds_m: tuple[float, float, float, float, float, float] = (0, 0, 0, 0, 0, 0)
+    """Box of interest (xmin, ymin, zmin, xmax, ymax, zmax). Zeros: take it from the scene."""
+
+    @property
+    def resolved(self) -> bool:
+        return self.d_scene_m > 0 and any(self.bounds_m)
+
+
+@dataclass
+class SensorConfig:
+    """The depth camera on the rover's pan-tilt mast."""
+
+    width_px: int = 160
+    """Image width in pixels."""
+    height_px: int = 120
+    """Image height in pixels."""
+    vfov_deg: float = 45.0
+    """Vertical field of view (the horizontal one follows from the aspect ratio)."""
+    min_range_m: float = 0.3
+    """Returns nearer than this are dropped (NaN)."""
+    max_range_m: float = 20.0
+    """Returns farther than this are dropped (NaN); also the far plane of frustums."""
+    mast_height_m: float = 1.6
+    """Height of the camera above the ground under the rover's centre."""
+    mast_forward_m: float = 0.3
+    """Forward offset of the mast from the rover's centre."""
+    pan_deg: float = 0.0
+    """Mast pan, positive to the left."""
+    tilt_deg: float = -15.0
+    """Mast tilt, negative looks down."""
+
+
+@dataclass
+class RoverConfig:
+    """The rover body, as the simulator and the planner's collision checks see it."""
+
+    length_m: float = 1.0
+    """Body length."""
+    width_m: float = 0.7
+    """Body width."""
+    clearance_m: float = 0.25
+    """Ground clearance: what is lower than this over the ground passes under the body."""
+    body_top_m: float = 0.9
+    """Top of the body above the ground (the mast above it is thin and is not checked)."""
+    check_spacing_m: float = 0.05
+    """Spacing of collision checks along an executed motion."""
+
+
+@dataclass
+class MapperConfig:
+    """Integration of depth into the observed surface S_t."""
+
+    voxel_m: float = 0.15
+    """Voxel edge of the observed surface: one point is kept per voxel."""
+
+
+@dataclass
+class GateConfig:
+    """The observation-gated filter (paper, equation 4)."""
+
+    k: int = 2
+    """Frustum inclusions after which an unsupported prediction is suppressed."""
+    epsilon_frac: float = 0.03
+    """Support radius as a fraction of d_scene (paper: 0.03)."""
+    oracle_delta_frac: float = 0.03
+    """Oracle tagging tolerance as a fraction of d_scene (paper: 0.03)."""
+
+
+@dataclass
+class PlannerConfig:
+    """Next-best-view selection and motion planning."""
+
+    name: str = "greedy"
+    """Planner (registry: greedy)."""
+    n_candidates: int = 32
+    """Candidate rover poses sampled each step within the motion budget."""
+    max_step_m: float = 3.0
+    """Motion budget per step: the longest path the rover drives in one step."""
+    gain_resolution: float = 0.25
+    """Resolution of gain rendering as a fraction of the sensor's."""
+    zbuffer_tolerance_m: float = 0.3
+    """A point is visible when it lies at most this far behind the z-buffer's nearest point."""
+    observed_min_views: int = 2
+    """A map point counts as observed once S_t has a point within tau seen in this many frames."""
+    max_attempts: int = 8
+    """Candidates (best gain first) tried with OMPL before giving up on a step."""
+    ompl_max_checks: int = 3000
+    """State-validity checks one OMPL query may spend (a count, not a time, for determinism)."""
+    ground_cell_m: float = 0.5
+    """Cell of the ground-height grid the collision model derives from the map."""
+    obstacle_voxel_m: float = 0.15
+    """Edge of the box that each obstacle point becomes in FCL."""
+
+
+@dataclass
+class EvalConfig:
+    """Coverage evaluation against ground truth (evaluation only, never fed to the planner)."""
+
+    tau_frac: float = 0.005
+    """A true surface sample is covered when an observed point lies within tau = tau_frac *
+    d_scene (0.21 m on arch_field: about one mapper voxel diagonal)."""
+    n_samples: int = 100_000
+    """Ground-truth surface samples, drawn by area with a fixed seed."""
+
+
+@dataclass
+class MissionConfig:
+    """One closed-loop mission."""
+
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    start: str = "a"
+    """Named start of the scene."""
+    steps: int = 100
+    """Planning steps T; the run records T+1 coverage values (poses 0..T)."""
+    seed: int = 0
+    """Seed of every random choice (planner candidates, OMPL sampling)."""
+    condition: str = "obs"
+    """Planner-facing occupancy: obs, truth, learned, learned-fp, learned+fn, gated."""
+    out: Path = Path("runs/latest")
+    """Directory for metrics.json, coverage.csv, plots, config.json and logs."""
+    in_process: bool = False
+    """Run the whole loop in this process without Zenoh (same numbers, no transport)."""
+    ready_timeout_s: float = 120.0
+    """How long to wait for every module's liveliness token."""
+    step_timeout_s: float = 120.0
+    """How long to wait for any one message of a step."""
+    progress: bool = True
+    """Show a progress bar."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    rover: RoverConfig = field(default_factory=RoverConfig)
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    gate: GateConfig = field(default_factory=GateConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    session: tyro.conf.OmitArgPrefixes[SessionConfig] = field(default_factory=SessionConfig)
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """A JSON-ready dict of a config dataclass."""
+    def conv(v: Any) -> Any:
+        if isinstance(v, Path):
+            return str(v)
+        if isinstance(v, tuple | list):
+            return [conv(x) for x in v]
+        if isinstance(v, dict):
+            return {k: conv(x) for k, x in v.items()}
+        return v
+    return conv(dataclasses.asdict(cfg))
+
+
+def from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
+    """Build a config dataclass from a dict, naming any unknown key."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    kwargs = {}
+    for key, value in data.items():
+        f = next((f for f in dataclasses.fields(cls) if f.name == key), None)
+        if f is None:
+            raise ValueError(f"{where}: unknown key {key!r}")
+        hint = hints[key]
+        while typing.get_origin(hint) is typing.Annotated:
+            hint = typing.get_args(hint)[0]
+        if dataclasses.is_dataclass(hint):
+            kwargs[key] = from_dict(hint, value, f"{where}.{key}")
+        elif hint is Path:
+            kwargs[key] = Path(value)
+        elif typing.get_origin(hint) is tuple:
+            kwargs[key] = tuple(value)
+        else:
+            kwargs[key] = value
+    return cls(**kwargs)
+
+
+def save_config(cfg: MissionConfig, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
+
+
+def load_config(path: Path) -> MissionConfig:
+    """Load a saved config; a bad file gives one line saying what and how to fix it."""
+    try:
+        return from_dict(MissionConfig, json.loads(Path(path).read_text()))
+    except FileNotFoundError:
+        raise SystemExit(f"error: config file {path} does not exist; pass the config.json that "
+                         "`rovergate run` wrote, or leave --config out") from None
+    except (ValueError, TypeError) as exc:
+        raise SystemExit(f"error: config file {path} is not a valid rovergate config ({exc}); "
+                         "write it with `rovergate run` or fix the named key") from None

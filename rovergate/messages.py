@@ -1,0 +1,293 @@
+"""ROS 2 message types and their CDR codec, built on ``rosbags``.
+
+Standard types are used where one fits; the three project types (``rovergate_msgs/msg/...``)
+are defined in ``rovergate/msg/*.msg`` and registered with the rosbags type store here.
+
+Where the planning step travels: every message has a ``std_msgs/Header`` whose
+``stamp.sec`` is the planning step t (the mission clock ticks one second per step, and
+``stamp.nanosec`` is 0); the project types repeat it in a ``step`` field. Frame ids are
+``map`` for everything in the world frame and ``camera`` for images and intrinsics.
+
+:func:`encode` and :func:`decode` convert between bytes on the wire and the plain data types of
+:mod:`rovergate.types`. :func:`decode` raises :class:`MessageError` with a one-line reason for
+anything that does not decode or has the wrong type or shape.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from importlib import resources
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from rovergate.keys import TOPICS
+from rovergate.types import (
+    PLANNER_DTYPE,
+    PREDICTED_DTYPE,
+    SURFACE_DTYPE,
+    XYZ_DTYPE,
+    CameraIntrinsics,
+    ExecutionReport,
+    MissionStatus,
+    PlannerMap,
+    PlanPath,
+    Pose,
+    StepTiming,
+)
+
+PROJECT_TYPES = ("MissionStatus", "ExecutionReport", "StepTiming")
+
+
+class MessageError(ValueError):
+    """A message that does not decode, or decodes to the wrong type or shape."""
+
+
+def _build_typestore():
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types = {}
+    for name in PROJECT_TYPES:
+        text = resources.files("rovergate").joinpath(f"msg/{name}.msg").read_text()
+        types.update(get_types_from_msg(text, f"rovergate_msgs/msg/{name}"))
+    store.register(types)
+    return store
+
+
+TYPESTORE = _build_typestore()
+_T = TYPESTORE.types
+
+# PointField datatypes (sensor_msgs/msg/PointField) and the numpy kinds they map to.
+_POINTFIELD = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
+_POINTFIELD_INV = {np.dtype(v).str: k for k, v in _POINTFIELD.items()}
+
+
+def _header(step: int, frame_id: str = "map"):
+    return _T["std_msgs/msg/Header"](
+        stamp=_T["builtin_interfaces/msg/Time"](sec=int(step), nanosec=0), frame_id=frame_id)
+
+
+def _step(header) -> int:
+    return int(header.stamp.sec)
+
+
+# --- images ---------------------------------------------------------------------------------
+
+def depth_to_ros(step: int, depth_m: np.ndarray):
+    depth = np.ascontiguousarray(depth_m, dtype="<f4")
+    h, w = depth.shape
+    return _T["sensor_msgs/msg/Image"](
+        header=_header(step, "camera"), height=h, width=w, encoding="32FC1", is_bigendian=0,
+        step=4 * w, data=depth.view(np.uint8).ravel())
+
+
+def depth_from_ros(msg) -> tuple[int, np.ndarray]:
+    if msg.encoding != "32FC1":
+        raise MessageError(f"depth image encoding is {msg.encoding!r}, expected '32FC1'")
+    if msg.is_bigendian:
+        raise MessageError("depth image is big-endian, expected little-endian")
+    h, w = int(msg.height), int(msg.width)
+    if h == 0 or w == 0 or msg.step != 4 * w or len(msg.data) != 4 * w * h:
+        raise MessageError(f"depth image of {w}x{h} with row step {msg.step} carries "
+                           f"{len(msg.data)} bytes, expected {4 * w * h}")
+    return _step(msg.header), np.frombuffer(msg.data.tobytes(), dtype="<f4").reshape(h, w).copy()
+
+
+# --- camera info ----------------------------------------------------------------------------
+
+def camera_info_to_ros(step: int, k: CameraIntrinsics):
+    K = np.array([k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1], dtype=np.float64)
+    P = np.array([k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1, 0], dtype=np.float64)
+    roi = _T["sensor_msgs/msg/RegionOfInterest"](
+        x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return _T["sensor_msgs/msg/CameraInfo"](
+        header=_header(step, "camera"), height=k.height, width=k.width,
+        distortion_model="plumb_bob", d=np.zeros(5), k=K, r=np.eye(3).ravel(), p=P,
+        binning_x=0, binning_y=0, roi=roi)
+
+
+def camera_info_from_ros(msg) -> tuple[int, CameraIntrinsics]:
+    K = np.asarray(msg.k, dtype=np.float64)
+    if K.shape != (9,) or K[0] <= 0 or K[4] <= 0 or msg.width == 0 or msg.height == 0:
+        raise MessageError("camera info has no valid intrinsics (k must hold fx, fy > 0)")
+    return _step(msg.header), CameraIntrinsics(int(msg.width), int(msg.height), float(K[0]),
+                                               float(K[4]), float(K[2]), float(K[5]))
+
+
+# --- poses and paths ------------------------------------------------------------------------
+
+def _pose_msg(pose: Pose):
+    p, q = pose.position, pose.orientation_xyzw
+    return _T["geometry_msgs/msg/Pose"](
+        position=_T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+        orientation=_T["geometry_msgs/msg/Quaternion"](
+            x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+
+
+def _pose_from_msg(msg) -> Pose:
+    p, q = msg.position, msg.orientation
+    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    values = np.array([p.x, p.y, p.z, *quat])
+    if not np.all(np.isfinite(values)):
+        raise MessageError("pose holds a non-finite value")
+    if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
+        raise MessageError(f"pose quaternion has norm {np.linalg.norm(quat):.4f}, expected 1")
+    return Pose(np.array([p.x, p.y, p.z], dtype=np.float64), quat)
+
+
+def pose_to_ros(step: int, pose: Pose):
+    return _T["geometry_msgs/msg/PoseStamped"](header=_header(step), pose=_pose_msg(pose))
+
+
+def pose_from_ros(msg) -> tuple[int, Pose]:
+    return _step(msg.header), _pose_from_msg(msg.pose)
+
+
+def path_to_ros(path: PlanPath):
+    poses = [_T["geometry_msgs/msg/PoseStamped"](header=_header(path.step), pose=_pose_msg(p))
+             for p in path.poses]
+    return _T["nav_msgs/msg/Path"](header=_header(path.step), poses=poses)
+
+
+def path_from_ros(msg) -> PlanPath:
+    return PlanPath(_step(msg.header), [_pose_from_msg(p.pose) for p in msg.poses])
+
+
+# --- point clouds ---------------------------------------------------------------------------
+
+def cloud_to_ros(step: int, cloud: np.ndarray):
+    """Structured numpy array -> sensor_msgs/PointCloud2 (one row, little-endian, packed)."""
+    dt = cloud.dtype
+    fields = [_T["sensor_msgs/msg/PointField"](
+        name=name, offset=dt.fields[name][1], datatype=_POINTFIELD_INV[dt.fields[name][0].str],
+        count=1) for name in dt.names]
+    n = len(cloud)
+    return _T["sensor_msgs/msg/PointCloud2"](
+        header=_header(step), height=1, width=n, fields=fields, is_bigendian=False,
+        point_step=dt.itemsize, row_step=dt.itemsize * n,
+        data=np.ascontiguousarray(cloud).view(np.uint8).ravel(), is_dense=True)
+
+
+def cloud_from_ros(msg, expected: np.dtype) -> tuple[int, np.ndarray]:
+    """sensor_msgs/PointCloud2 -> structured array of ``expected`` dtype, checked field by field."""
+    got = {f.name: (int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields}
+    for name in expected.names:
+        if name not in got:
+            raise MessageError(f"point cloud lacks field {name!r} (has {sorted(got)})")
+        offset, datatype, count = got[name]
+        want = _POINTFIELD_INV[expected.fields[name][0].str]
+        if datatype != want or count != 1:
+            raise MessageError(f"point cloud field {name!r} has datatype {datatype} x{count}, "
+                               f"expected {want} x1")
+    if msg.is_bigendian:
+        raise MessageError("point cloud is big-endian, expected little-endian")
+    n = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    if len(msg.data) != n * step:
+        raise MessageError(f"point cloud of {n} points x {step} bytes carries "
+                           f"{len(msg.data)} bytes")
+    wire = np.dtype({"names": list(expected.names),
+                     "formats": [expected.fields[k][0] for k in expected.names],
+                     "offsets": [got[k][0] for k in expected.names], "itemsize": step})
+    raw = np.frombuffer(msg.data.tobytes(), dtype=wire, count=n)
+    out = np.empty(n, dtype=expected)
+    for name in expected.names:
+        out[name] = raw[name]
+    return _step(msg.header), out
+
+
+# --- project types --------------------------------------------------------------------------
+
+def status_to_ros(s: MissionStatus):
+    return _T["rovergate_msgs/msg/MissionStatus"](
+        header=_header(s.step), step=s.step, steps_total=s.steps_total, state=s.state,
+        condition=s.condition, coverage=float(s.coverage), collisions=s.collisions)
+
+
+def status_from_ros(m) -> MissionStatus:
+    return MissionStatus(int(m.step), int(m.steps_total), str(m.state), str(m.condition),
+                         float(m.coverage), int(m.collisions))
+
+
+def execution_to_ros(r: ExecutionReport):
+    return _T["rovergate_msgs/msg/ExecutionReport"](
+        header=_header(r.step), step=r.step, collided=bool(r.collided),
+        collision_samples=r.collision_samples, min_clearance_m=float(r.min_clearance_m),
+        path_length_m=float(r.path_length_m), executed_fraction=float(r.executed_fraction))
+
+
+def execution_from_ros(m) -> ExecutionReport:
+    return ExecutionReport(int(m.step), bool(m.collided), int(m.collision_samples),
+                           float(m.min_clearance_m), float(m.path_length_m),
+                           float(m.executed_fraction))
+
+
+def timing_to_ros(t: StepTiming):
+    return _T["rovergate_msgs/msg/StepTiming"](
+        header=_header(t.step), step=t.step, module=t.module, compute_s=float(t.compute_s),
+        dropped_total=t.dropped_total)
+
+
+def timing_from_ros(m) -> StepTiming:
+    return StepTiming(int(m.step), str(m.module), float(m.compute_s), int(m.dropped_total))
+
+
+# --- the table: topic -> (to_ros, from_ros) -------------------------------------------------
+# ``to_ros`` takes the value a module publishes; ``from_ros`` returns (step, value).
+
+def _with_step(from_ros: Callable[[Any], Any]) -> Callable[[Any], tuple[int, Any]]:
+    def decode_with_step(msg):
+        value = from_ros(msg)
+        return value.step, value
+    return decode_with_step
+
+
+def _planner_map_from_ros(msg) -> PlannerMap:
+    step, points = cloud_from_ros(msg, PLANNER_DTYPE)
+    return PlannerMap(step, points)
+
+
+def _cloud_codec(dtype: np.dtype):
+    return (lambda v: cloud_to_ros(*v), lambda m: cloud_from_ros(m, dtype))
+
+
+_CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]] = {
+    "depth": (lambda v: depth_to_ros(*v), depth_from_ros),
+    "camera_info": (lambda v: camera_info_to_ros(*v), camera_info_from_ros),
+    "pose": (lambda v: pose_to_ros(*v), pose_from_ros),
+    "base_pose": (lambda v: pose_to_ros(*v), pose_from_ros),
+    "surface": _cloud_codec(SURFACE_DTYPE),
+    "predicted": _cloud_codec(PREDICTED_DTYPE),
+    "planner_map": (lambda v: cloud_to_ros(v.step, v.points), _with_step(_planner_map_from_ros)),
+    "path": (path_to_ros, _with_step(path_from_ros)),
+    "execution": (execution_to_ros, _with_step(execution_from_ros)),
+    "status": (status_to_ros, _with_step(status_from_ros)),
+    "timing": (timing_to_ros, _with_step(timing_from_ros)),
+    "truth_surface": _cloud_codec(XYZ_DTYPE),
+    "truth_occupancy": _cloud_codec(XYZ_DTYPE),
+}
+
+
+def encode(topic: str, value: Any) -> bytes:
+    """Serialise a module's value for ``topic`` as CDR bytes of the topic's ROS 2 type.
+
+    Depth, camera info, poses and clouds take ``(step, value)``; the others carry their step.
+    """
+    to_ros, _ = _CODECS[topic]
+    return bytes(TYPESTORE.serialize_cdr(to_ros(value), TOPICS[topic].msgtype))
+
+
+def decode(topic: str, payload: bytes) -> tuple[int, Any]:
+    """CDR bytes -> (step, value). Raises :class:`MessageError` on anything malformed."""
+    msgtype = TOPICS[topic].msgtype
+    try:
+        msg = TYPESTORE.deserialize_cdr(payload, msgtype)
+    except Exception as exc:  # rosbags raises several kinds for truncated or garbage bytes
+        raise MessageError(f"not a valid CDR {msgtype}: {exc}") from None
+    _, from_ros = _CODECS[topic]
+    try:
+        return from_ros(msg)
+    except MessageError:
+        raise
+    except Exception as exc:
+        raise MessageError(f"{msgtype} has the wrong shape: {exc}") from None

@@ -1,0 +1,212 @@
+"""The node runtime: a thin wrapper that puts a module's plain logic on the Zenoh network.
+
+A :class:`ModuleNode` owns the session, the publishers and subscriptions, the liveliness token
+that says the module is ready, and the lockstep: the handler for step t runs once every input
+for step t has arrived (an input with ``lag=1`` is the message of step t-1, absent at t=0).
+Module logic never imports Zenoh; only this module and the mission's hub do.
+
+A message that does not decode, or has the wrong encoding, type or shape, is logged with its
+key and the reason, counted, and dropped; the process runs on.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from rovergate.keys import TOPICS, Keys
+from rovergate.messages import MessageError, decode, encode
+from rovergate.session import SessionConfig, open_session
+from rovergate.types import StepTiming
+
+_MISSION_LOST = "__mission_lost__"
+
+
+def cdr_encoding(topic: str) -> zenoh.Encoding:
+    """``application/cdr`` with the topic's ROS 2 type name as schema."""
+    return zenoh.Encoding.APPLICATION_CDR.with_schema(TOPICS[topic].msgtype)
+
+
+def check_and_decode(topic: str, sample: zenoh.Sample) -> tuple[int, Any]:
+    """Decode a sample of ``topic``, checking its encoding first. Raises MessageError."""
+    want = str(cdr_encoding(topic))
+    got = str(sample.encoding)
+    if got != want:
+        raise MessageError(f"encoding is {got!r}, expected {want!r}")
+    return decode(topic, sample.payload.to_bytes())
+
+
+@dataclass(frozen=True)
+class Input:
+    """One subscription of a module: ``lag=1`` means step t needs the message of step t-1."""
+
+    topic: str
+    lag: int = 0
+
+
+class ModuleNode:
+    """Session, subscriptions, liveliness and lockstep for one module process."""
+
+    def __init__(self, name: str, session_cfg: SessionConfig, inputs: dict[str, Input],
+                 outputs: list[str], log: logging.Logger) -> None:
+        self.name = name
+        self.session_cfg = session_cfg
+        self.log = log
+        self.keys = Keys(session_cfg.namespace)
+        self.inputs = inputs
+        self.dropped = 0
+        self._queue: queue.Queue[tuple[str, int, Any]] = queue.Queue()
+        self._buffers: dict[str, dict[int, Any]] = {n: {} for n in inputs}
+        self._lock = threading.Lock()
+        self._publish_s = 0.0
+        self._token: zenoh.LivelinessToken | None = None
+        self.session = open_session(session_cfg)
+        self._publishers = {
+            t: self.session.declare_publisher(self.keys.key(t), encoding=cdr_encoding(t))
+            for t in [*outputs, "timing"]}
+        # The status topic is always watched: it carries the end of the mission.
+        watched = {i.topic for i in inputs.values()} | {"status"}
+        self._subscribers = [
+            self.session.declare_subscriber(self.keys.key(t), self._callback(t)) for t in watched]
+        self._mission_seen = False
+        self._watchdog = self.session.liveliness().declare_subscriber(
+            self.keys.alive("mission"), self._on_mission_liveliness, history=True)
+        self._queryables: list[zenoh.Queryable] = []
+
+    # --- receiving ------------------------------------------------------------------------
+
+    def _callback(self, topic: str) -> Callable[[zenoh.Sample], None]:
+        key = self.keys.key(topic)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                step, value = check_and_decode(topic, sample)
+            except MessageError as exc:
+                with self._lock:
+                    self.dropped += 1
+                self.log.warning("dropped a message on %s: %s (%d dropped so far)",
+                                 key, exc, self.dropped)
+                return
+            self._queue.put((topic, step, value))
+        return on_sample
+
+    def _on_mission_liveliness(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._mission_seen = True
+        elif self._mission_seen:
+            self._queue.put((_MISSION_LOST, -1, None))
+
+    # --- sending --------------------------------------------------------------------------
+
+    def publish(self, topic: str, value: Any) -> None:
+        """Encode ``value`` as the topic's ROS 2 type and put it."""
+        t0 = time.perf_counter()
+        self._publishers[topic].put(encode(topic, value))
+        self._publish_s += time.perf_counter() - t0
+
+    def serve(self, topic: str, make_value: Callable[[], Any]) -> None:
+        """Answer queries on ``topic`` with the encoded value of ``make_value()``."""
+        key = self.keys.key(topic)
+        encoding = cdr_encoding(topic)
+
+        def on_query(query: zenoh.Query) -> None:
+            query.reply(key, encode(topic, make_value()), encoding=encoding)
+        self._queryables.append(self.session.declare_queryable(key, on_query))
+
+    def query(self, topic: str, timeout_s: float) -> Any:
+        """Fetch the value a queryable serves on ``topic``, retrying until ``timeout_s``."""
+        key = self.keys.key(topic)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for reply in self.session.get(key, timeout=min(10.0, timeout_s)):
+                if reply.ok is not None:
+                    try:
+                        return check_and_decode(topic, reply.ok)[1]
+                    except MessageError as exc:
+                        self.log.warning("dropped a reply on %s: %s", key, exc)
+            time.sleep(0.2)
+        raise SystemExit(f"error: {self.name}: no answer on {key} within {timeout_s:.0f} s; "
+                         "is the simulator running in this namespace?")
+
+    def ready(self, timeout_s: float = 60.0) -> None:
+        """Declare this module's liveliness token: everything is subscribed and loaded.
+
+        With ``wait_for_peers`` set, first wait until that many peers are linked, so that
+        messages published right after the mission starts reach their subscribers.
+        """
+        want = self.session_cfg.wait_for_peers
+        deadline = time.monotonic() + timeout_s
+        while want and len(list(self.session.info.peers_zid())) < want:
+            if time.monotonic() > deadline:
+                have = len(list(self.session.info.peers_zid()))
+                raise SystemExit(f"error: {self.name}: only {have} of {want} Zenoh peers linked "
+                                 f"after {timeout_s:.0f} s; check the --connect/--listen "
+                                 "endpoints")
+            time.sleep(0.01)
+        self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
+        self.log.info("ready: liveliness token %s declared", self.keys.alive(self.name))
+
+    # --- the lockstep ---------------------------------------------------------------------
+
+    def _missing(self, step: int) -> list[str]:
+        return [n for n, i in self.inputs.items()
+                if step - i.lag >= 0 and (step - i.lag) not in self._buffers[n]]
+
+    def spin(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
+             idle_timeout_s: float, last_step: int | None = None) -> str:
+        """Run ``handler(step, inputs)`` for step 0, 1, ... as each step's inputs complete.
+
+        The handler publishes what it produces and may return ``{stage: seconds}`` to report
+        its work by stage; otherwise its wall time (publishing excluded) is reported under the
+        module's name on the timing topic.
+
+        Returns why it stopped: ``done`` or ``aborted`` (the mission said so), ``mission-lost``
+        (the mission's liveliness token vanished) or ``idle-timeout``.
+        """
+        step = 0
+        while True:
+            try:
+                topic, msg_step, value = self._queue.get(timeout=idle_timeout_s)
+            except queue.Empty:
+                awaited = ", ".join(f"{self.keys.key(self.inputs[n].topic)} step "
+                                    f"{step - self.inputs[n].lag}" for n in self._missing(step))
+                self.log.error("no input for %.0f s; awaited %s", idle_timeout_s, awaited)
+                return "idle-timeout"
+            if topic == _MISSION_LOST:
+                self.log.error("the mission's liveliness token vanished; stopping")
+                return "mission-lost"
+            if topic == "status" and value.state in ("done", "aborted"):
+                self.log.info("mission %s at step %d; stopping", value.state, value.step)
+                return value.state
+            for name, inp in self.inputs.items():
+                if inp.topic == topic and msg_step >= step - inp.lag:
+                    self._buffers[name][msg_step] = value
+            while not self._missing(step) and (last_step is None or step <= last_step):
+                inputs = {n: self._buffers[n].pop(step - i.lag, None)
+                          for n, i in self.inputs.items()}
+                self._publish_s = 0.0
+                t0 = time.perf_counter()
+                stages = handler(step, inputs)
+                if stages is None:
+                    stages = {self.name: time.perf_counter() - t0 - self._publish_s}
+                for stage, seconds in stages.items():
+                    self.publish("timing", StepTiming(step, stage, seconds, self.dropped))
+                step += 1
+
+    def close(self) -> None:
+        """Undeclare everything and close the session."""
+        if self._token is not None:
+            self._token.undeclare()
+        for q in self._queryables:
+            q.undeclare()
+        for s in self._subscribers:
+            s.undeclare()
+        self._watchdog.undeclare()
+        self.session.close()

@@ -1,0 +1,226 @@
+"""Plain data types that module logic takes and returns.
+
+Each type mirrors the ROS 2 message it travels as, field for field and dtype for dtype, so that
+decoding a message gives back exactly the arrays that were encoded. That is what lets the same
+mission run in one process or as a process set and produce the same numbers to the last digit.
+
+Frames: ``map`` is the world frame (z up). ``base`` is the rover body (x forward, y left, z up).
+``camera`` is the optical frame of the depth camera (x right, y down, z forward), as in ROS.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """(4,) unit quaternion (x, y, z, w) -> (3, 3) rotation matrix."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix -> (4,) unit quaternion (x, y, z, w) with w >= 0."""
+    m = np.asarray(R, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q, dtype=np.float64)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def yaw_to_quat(yaw: float) -> np.ndarray:
+    """Heading about map z -> (4,) quaternion (x, y, z, w)."""
+    return np.array([0.0, 0.0, np.sin(yaw / 2.0), np.cos(yaw / 2.0)])
+
+
+def quat_to_yaw(q_xyzw: np.ndarray) -> float:
+    """Heading about map z of a quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+@dataclass
+class Pose:
+    """A rigid transform as geometry_msgs/Pose carries it: float64 position and quaternion."""
+
+    position: np.ndarray
+    """(3,) float64, metres."""
+    orientation_xyzw: np.ndarray
+    """(4,) float64 unit quaternion (x, y, z, w)."""
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> Pose:
+        return cls(np.asarray(T[:3, 3], dtype=np.float64).copy(), matrix_to_quat(T[:3, :3]))
+
+    @classmethod
+    def from_xyz_yaw(cls, x: float, y: float, z: float, yaw: float) -> Pose:
+        return cls(np.array([x, y, z], dtype=np.float64), yaw_to_quat(yaw))
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float64 homogeneous transform."""
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(self.orientation_xyzw)
+        T[:3, 3] = self.position
+        return T
+
+    @property
+    def yaw(self) -> float:
+        return quat_to_yaw(self.orientation_xyzw)
+
+
+@dataclass
+class CameraIntrinsics:
+    """Pinhole intrinsics as sensor_msgs/CameraInfo carries them (pixel centres at integers)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, vfov_deg: float) -> CameraIntrinsics:
+        fy = (height / 2.0) / np.tan(np.radians(vfov_deg) / 2.0)
+        return cls(width, height, float(fy), float(fy), (width - 1) / 2.0, (height - 1) / 2.0)
+
+    def scaled(self, factor: float) -> CameraIntrinsics:
+        """The same field of view at ``factor`` times the resolution."""
+        w, h = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        return CameraIntrinsics(w, h, self.fx * sx, self.fy * sy,
+                                (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
+
+
+@dataclass
+class SensorFrame:
+    """What the rover senses at one planning step."""
+
+    step: int
+    depth_m: np.ndarray
+    """(H, W) float32 z-depth in metres, NaN where there is no return."""
+    intrinsics: CameraIntrinsics
+    T_map_camera: Pose
+    T_map_base: Pose
+
+
+#: dtype of one point of the observed surface S_t on ``map/surface``.
+SURFACE_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("views", "<u2")])
+#: dtype of one point of the learned prediction on ``map/occupancy/predicted``.
+PREDICTED_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("probability", "<f4")])
+#: dtype of one point of the planner-facing occupancy on ``map/occupancy/planner``.
+PLANNER_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                          ("source", "u1"), ("views", "<u2")])
+#: dtype of ground-truth point clouds on ``truth/...``.
+XYZ_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+
+
+class Source:
+    """Values of the ``source`` field of the planner-facing occupancy."""
+
+    OBSERVED = 0
+    """A point of the accumulated observed surface S_t."""
+    PREDICTED = 1
+    """A learned prediction the condition kept (equation 2 or the gate of equation 4)."""
+    ORACLE_FN = 2
+    """A reference point restored as an oracle false negative (condition ``learned+fn``)."""
+    TRUTH = 3
+    """A reference occupied sample (condition ``truth``)."""
+
+
+def xyz(cloud: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 coordinates of a structured point cloud."""
+    out = np.empty((len(cloud), 3), dtype=np.float32)
+    out[:, 0], out[:, 1], out[:, 2] = cloud["x"], cloud["y"], cloud["z"]
+    return out
+
+
+def make_cloud(points_xyz: np.ndarray, dtype: np.dtype, **fields: np.ndarray) -> np.ndarray:
+    """Structured cloud of ``dtype`` from (N, 3) coordinates and per-point fields."""
+    out = np.zeros(len(points_xyz), dtype=dtype)
+    out["x"], out["y"], out["z"] = points_xyz[:, 0], points_xyz[:, 1], points_xyz[:, 2]
+    for name, values in fields.items():
+        out[name] = values
+    return out
+
+
+@dataclass
+class MapperOutput:
+    """The mapper's products at one step."""
+
+    step: int
+    surface: np.ndarray
+    """Structured (N,) :data:`SURFACE_DTYPE`: S_t, new voxels appended at the end."""
+    predicted: np.ndarray
+    """Structured (M,) :data:`PREDICTED_DTYPE`: points with occupancy probability >= 0.5."""
+
+
+@dataclass
+class PlannerMap:
+    """The planner-facing occupancy of one step."""
+
+    step: int
+    points: np.ndarray
+    """Structured (N,) :data:`PLANNER_DTYPE`."""
+    suppressed: int = 0
+    """Predicted points the gate suppressed this step (0 when no gate runs)."""
+
+
+@dataclass
+class PlanPath:
+    """The motion chosen for the next step, as rover base poses in ``map``."""
+
+    step: int
+    poses: list[Pose] = field(default_factory=list)
+
+
+@dataclass
+class ExecutionReport:
+    """What executing one step's path did in the true world."""
+
+    step: int
+    collided: bool
+    collision_samples: int
+    min_clearance_m: float
+    path_length_m: float
+    executed_fraction: float
+
+
+@dataclass
+class MissionStatus:
+    """The mission clock and its headline figures."""
+
+    step: int
+    steps_total: int
+    state: str
+    condition: str
+    coverage: float
+    collisions: int
+
+
+@dataclass
+class StepTiming:
+    """How long a module worked on one step."""
+
+    step: int
+    module: str
+    compute_s: float
+    dropped_total: int
