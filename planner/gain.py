@@ -3,12 +3,14 @@
 Points are projected into the candidate camera at a reduced resolution; a per-pixel z-buffer
 keeps the nearest depth, and a point counts as visible when it lies at most
 ``tolerance_m`` behind that nearest depth (so a surface's own points do not hide each other,
-while a wall hides what is behind it). Gain is the number of visible novel points.
+while a wall hides what is behind it); the z-buffer is eroded by one pixel to close the gaps
+between point samples. Gain is the number of visible novel points.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import minimum_filter
 
 from rovergate.types import CameraIntrinsics
 
@@ -31,6 +33,9 @@ def visible_mask(points_map: np.ndarray, T_map_camera: np.ndarray, k: CameraIntr
     pix = v[idx] * k.width + u[idx]
     zbuf = np.full(k.width * k.height, np.inf)
     np.minimum.at(zbuf, pix, z[idx])
+    # Points are samples, not surfaces: close the one-pixel gaps between the samples of a
+    # near surface so that it hides what is behind it.
+    zbuf = minimum_filter(zbuf.reshape(k.height, k.width), size=3, mode="nearest").ravel()
     visible[idx] = z[idx] <= zbuf[pix] + tolerance_m
     return visible
 

@@ -45,7 +45,7 @@ def plan_se2(start: SE2, goal: SE2, is_free: Callable[[float, float, float], boo
     for state, (x, y, yaw) in ((s, start), (g, goal)):
         state.setX(x)
         state.setY(y)
-        state.setYaw(yaw)
+        state.setYaw((yaw + np.pi) % (2 * np.pi) - np.pi)  # OMPL's SO(2) is [-pi, pi)
     ss.setStartAndGoalStates(s, g)
     ss.setPlanner(og.RRTConnect(si))
     ptc = ob.PlannerTerminationCondition(lambda: checks[0] >= max_checks)

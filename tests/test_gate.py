@@ -1,0 +1,128 @@
+"""The observation-gated filter (equation 4) and the conditions of equation 2, on built cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gate.conditions import CONDITIONS
+from gate.filter import ObservationGate
+from gate.gate import Gate, oracle_tags
+from rovergate.config import GateConfig, SensorConfig
+from rovergate.platform import R_BODY_OPTICAL
+from rovergate.types import (
+    PREDICTED_DTYPE,
+    SURFACE_DTYPE,
+    CameraIntrinsics,
+    MapperOutput,
+    Pose,
+    Source,
+    make_cloud,
+)
+
+K = CameraIntrinsics.from_fov(64, 48, 45.0)
+
+
+def camera_looking_along_x(x: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R_BODY_OPTICAL
+    T[:3, 3] = [x, 0.0, 1.0]
+    return T
+
+
+TARGET = np.array([[10.0, 0.0, 1.0]], dtype=np.float32)   # straight ahead, in range
+BEHIND = np.array([[-10.0, 0.0, 1.0]], dtype=np.float32)  # never in the frustum
+
+
+def make_gate(k=2, eps=0.5):
+    return ObservationGate(k=k, epsilon_m=eps, min_range_m=0.3, max_range_m=20.0)
+
+
+def test_counts_frustum_inclusions():
+    g = make_gate()
+    for _ in range(3):
+        g.add_frustum(camera_looking_along_x(), K)
+    assert g.exposure_counts(np.vstack([TARGET, BEHIND])).tolist() == [3, 0]
+
+
+def test_out_of_range_is_not_exposed():
+    g = make_gate()
+    g.add_frustum(camera_looking_along_x(), K)
+    far = np.array([[25.0, 0.0, 1.0]], dtype=np.float32)
+    assert g.exposure_counts(far).tolist() == [0]
+
+
+def test_kept_below_k_suppressed_at_k_without_support():
+    g = make_gate(k=2)
+    no_surface = np.zeros((0, 3), dtype=np.float32)
+    g.add_frustum(camera_looking_along_x(), K)
+    assert not g.unsupported(TARGET, no_surface)[0]          # n=1 < K: kept
+    g.add_frustum(camera_looking_along_x(1.0), K)
+    assert g.unsupported(TARGET, no_surface)[0]              # n=2 = K, no support: suppressed
+
+
+def test_support_within_epsilon_keeps_a_point():
+    g = make_gate(k=2, eps=0.5)
+    for x in (0.0, 1.0, 2.0):
+        g.add_frustum(camera_looking_along_x(x), K)
+    near = TARGET + np.array([0.4, 0, 0], dtype=np.float32)
+    far = TARGET + np.array([0.6, 0, 0], dtype=np.float32)
+    assert not g.unsupported(TARGET, near)[0]
+    assert g.unsupported(TARGET, far)[0]
+
+
+def test_later_support_restores_a_suppressed_point():
+    g = make_gate(k=2, eps=0.5)
+    g.add_frustum(camera_looking_along_x(), K)
+    g.add_frustum(camera_looking_along_x(), K)
+    assert g.unsupported(TARGET, np.zeros((0, 3), np.float32))[0]
+    surface_later = TARGET + np.array([0.0, 0.2, 0.0], dtype=np.float32)
+    assert not g.unsupported(TARGET, surface_later)[0]
+
+
+def _mapped(surface_xyz, pred_xyz):
+    return MapperOutput(3, make_cloud(surface_xyz, SURFACE_DTYPE, views=1),
+                        make_cloud(pred_xyz, PREDICTED_DTYPE, probability=0.9))
+
+
+def test_gated_condition_drops_unsupported_points_only():
+    gate = Gate("gated", GateConfig(), SensorConfig(), d_scene_m=10.0)  # epsilon 0.3 m
+    surface = np.array([[10.0, 0.0, 1.2]], dtype=np.float32)
+    pred = np.vstack([TARGET, TARGET + [[0, 3.0, 0]], BEHIND]).astype(np.float32)
+    pose = Pose.from_matrix(camera_looking_along_x())
+    gate.step(_mapped(surface, pred), pose, K)
+    out = gate.step(_mapped(surface, pred), pose, K)
+    src = out.points["source"]
+    kept = out.points[src == Source.PREDICTED]
+    # Supported (near the surface) and never-seen (behind) predictions stay; the exposed,
+    # unsupported one is suppressed.
+    assert out.suppressed == 1
+    assert sorted(kept["x"].tolist()) == [-10.0, 10.0]
+    assert (src == Source.OBSERVED).sum() == 1
+
+
+@pytest.mark.parametrize("name", sorted(CONDITIONS))
+def test_every_condition_composes_as_equation_2(name):
+    ref = np.array([[0, 0, 0], [5, 5, 0], [9, 9, 9]], dtype=np.float32)
+    surface = np.array([[0, 0, 0.05]], dtype=np.float32)
+    pred = np.array([[5, 5, 0.1], [3, 3, 3]], dtype=np.float32)  # one true, one false positive
+    gate = Gate(name, GateConfig(), SensorConfig(), d_scene_m=10.0, reference_xyz=ref)
+    out = gate.step(_mapped(surface, pred), Pose.from_matrix(camera_looking_along_x()), K)
+    counts = {s: int((out.points["source"] == s).sum()) for s in range(4)}
+    expected = {
+        "obs": {0: 1, 1: 0, 2: 0, 3: 0},
+        "learned": {0: 1, 1: 2, 2: 0, 3: 0},
+        "learned-fp": {0: 1, 1: 1, 2: 0, 3: 0},
+        "learned+fn": {0: 1, 1: 2, 2: 2, 3: 0},   # (0,0,0) and (9,9,9) have no prediction near
+        "truth": {0: 0, 1: 0, 2: 0, 3: 3},
+        "gated": {0: 1, 1: 2, 2: 0, 3: 0},        # one frustum only: nothing suppressed yet
+    }[name]
+    assert counts == expected
+
+
+def test_oracle_tags_follow_the_paper():
+    ref = np.array([[0, 0, 0], [1, 0, 0]], dtype=np.float32)
+    pred = np.array([[0.05, 0, 0], [5, 0, 0]], dtype=np.float32)
+    tags = oracle_tags(pred, ref, delta_m=0.1)
+    assert tags.false_positive.tolist() == [False, True]
+    assert tags.false_negative_points.tolist() == [[1.0, 0.0, 0.0]]

@@ -1,0 +1,50 @@
+"""Depth integration: back-projection and the voxel surface."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapper.integrate import VoxelSurface, backproject, voxel_first_points
+from mapper.mapper import Mapper
+from rovergate.config import MapperConfig
+from rovergate.platform import R_BODY_OPTICAL
+from rovergate.types import CameraIntrinsics, Pose, SensorFrame
+
+
+def test_backprojection_of_a_wall_lands_on_the_wall():
+    k = CameraIntrinsics.from_fov(32, 24, 60.0)
+    depth = np.full((24, 32), 4.0, dtype=np.float32)
+    depth[0, 0] = np.nan
+    T = np.eye(4)
+    T[:3, :3] = R_BODY_OPTICAL  # looking along +x from (1, 2, 3)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    pts = backproject(depth, k, T)
+    assert pts.shape == (24 * 32 - 1, 3) and pts.dtype == np.float32
+    np.testing.assert_allclose(pts[:, 0], 5.0, atol=1e-5)
+    # The optical axis passes through the image centre.
+    assert abs(pts[:, 1].mean() - 2.0) < 0.1 and abs(pts[:, 2].mean() - 3.0) < 0.1
+
+
+def test_voxel_surface_appends_and_counts_views():
+    s = VoxelSurface(voxel_m=1.0)
+    a = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [5.5, 0, 0]], dtype=np.float32)
+    assert s.integrate(a) == 2
+    first = s.points.copy()
+    b = np.array([[0.9, 0.9, 0.9], [-3.5, 0, 0]], dtype=np.float32)
+    assert s.integrate(b) == 1
+    np.testing.assert_array_equal(s.points[:2], first)  # earlier S_t is a prefix
+    assert s.views.tolist() == [2, 1, 1]
+    np.testing.assert_array_equal(s.points[0], a[0])  # the first point of a voxel stays
+
+
+def test_voxel_first_points_keeps_order():
+    pts = np.array([[0.1, 0, 0], [3.2, 0, 0], [0.3, 0, 0]], dtype=np.float32)
+    assert voxel_first_points(pts, 1.0).tolist() == pts[:2].tolist()
+
+
+def test_mapper_step_publishes_an_empty_prediction_until_the_model_lands():
+    k = CameraIntrinsics.from_fov(8, 6, 45.0)
+    T = Pose.from_xyz_yaw(0, 0, 1, 0)
+    frame = SensorFrame(0, np.full((6, 8), 2.0, np.float32), k, T, T)
+    out = Mapper(MapperConfig()).step(frame)
+    assert len(out.surface) > 0 and len(out.predicted) == 0

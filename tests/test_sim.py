@@ -1,0 +1,74 @@
+"""The world: deterministic scene, free starts, honest depth, collisions between waypoints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapper.integrate import backproject
+from rover_sim.rover import RoverBody
+from rover_sim.scene import build_arch_field
+from rover_sim.sim import RoverSim
+from rovergate.config import MissionConfig, RoverConfig
+from rovergate.types import PlanPath, Pose
+
+
+def test_scene_is_deterministic(scene):
+    again = build_arch_field()
+    assert np.array_equal(scene.terrain_z, again.terrain_z)
+    assert all(np.array_equal(a.vertices, b.vertices)
+               for a, b in zip(scene.objects, again.objects, strict=True))
+    np.testing.assert_array_equal(scene.surface_samples(5000, seed=0),
+                                  again.surface_samples(5000, seed=0))
+
+
+def test_d_scene_is_the_diagonal_of_the_box_of_interest(scene):
+    lo, hi = np.array(scene.bounds_m[:3]), np.array(scene.bounds_m[3:])
+    assert scene.d_scene_m == pytest.approx(np.linalg.norm(hi - lo))
+    assert 40.0 < scene.d_scene_m < 45.0  # 30 m x 30 m, about 5 m of relief
+
+
+def test_every_start_is_collision_free(scene):
+    body = RoverBody(scene, RoverConfig())
+    for name, (x, y, yaw) in scene.starts.items():
+        assert body.clearance(body.base_pose(x, y, yaw)) > 0.3, name
+
+
+def test_collision_between_free_waypoints_is_caught(scene):
+    body = RoverBody(scene, RoverConfig())
+    rock = max(scene.objects[5:], key=lambda o: o.extents[0])  # a big rock
+    c = rock.bounds.mean(axis=0)
+    before, after = (c[0] - 4.0, c[1], 0.0), (c[0] + 4.0, c[1], 0.0)
+    assert body.clearance(body.base_pose(*before)) > 0 < body.clearance(body.base_pose(*after))
+    result = body.drive(before, [after])
+    assert result.collided and result.executed_fraction < 0.7
+    assert body.clearance(body.base_pose(*result.final_xy_yaw)) > 0  # stopped before it
+
+
+@pytest.fixture(scope="module")
+def sim(scene):
+    cfg = MissionConfig()
+    s = RoverSim(cfg, scene)
+    yield s
+    s.close()
+
+
+def test_depth_back_projects_onto_the_true_surface(sim, scene):
+    frame = sim.render(0)
+    assert frame.depth_m.dtype == np.float32 and frame.depth_m.shape == (120, 160)
+    valid = np.isfinite(frame.depth_m)
+    assert 0.5 < valid.mean() < 1.0  # the sky has no return
+    pts = backproject(frame.depth_m, frame.intrinsics, frame.T_map_camera.matrix())
+    truth = scene.surface_samples(200_000, seed=1)
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(truth).query(pts)
+    assert np.median(d) < 0.1
+
+
+def test_executing_a_path_moves_the_rover(sim):
+    x, y, yaw = sim.state
+    path = PlanPath(0, [Pose.from_xyz_yaw(x, y, 0, yaw), Pose.from_xyz_yaw(x + 1.0, y, 0, yaw)])
+    report = sim.execute(path)
+    assert not report.collided and report.path_length_m == pytest.approx(1.0)
+    assert sim.state[0] == pytest.approx(x + 1.0)
+    assert report.min_clearance_m > 0
