@@ -23,25 +23,23 @@ def main(cfg: MissionConfig) -> int:
                       inputs={"surface": Input("surface"), "predicted": Input("predicted"),
                               "pose": Input("pose"), "info": Input("camera_info")},
                       outputs=["planner_map"], log=log)
-    try:
-        reference = None
-        if condition.needs_truth:
-            # Oracle conditions only: the one place outside evaluation that asks for truth.
+    reference = None
+    if condition.needs_truth:
+        # Oracle conditions only: the one place outside evaluation that asks for truth.
+        try:
             reference = xyz(node.query("truth_occupancy", cfg.ready_timeout_s))
-            log.info("oracle condition %s: %d reference points", condition.name, len(reference))
-        gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
+        except BaseException:
+            node.close()
+            raise
+        log.info("oracle condition %s: %d reference points", condition.name, len(reference))
+    gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
 
-        def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
-            t0 = time.perf_counter()
-            mapped = MapperOutput(step, inputs["surface"], inputs["predicted"])
-            occupancy = gate.step(mapped, inputs["pose"], inputs["info"])
-            seconds = time.perf_counter() - t0
-            node.publish("planner_map", occupancy)
-            return {"gate": seconds}
+    def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
+        t0 = time.perf_counter()
+        mapped = MapperOutput(step, inputs["surface"], inputs["predicted"])
+        occupancy = gate.step(mapped, inputs["pose"], inputs["info"])
+        seconds = time.perf_counter() - t0
+        node.publish("planner_map", occupancy)
+        return {"gate": seconds}
 
-        node.ready()
-        reason = node.spin(handle, cfg.ready_timeout_s + cfg.step_timeout_s,
-                           last_step=cfg.steps - 1)
-    finally:
-        node.close()
-    return 0 if reason in ("done", "aborted") else 1
+    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1)

@@ -29,9 +29,4 @@ def main(cfg: MissionConfig) -> int:
         node.publish("predicted", (step, out.predicted))
         return {"integrate": seconds}
 
-    try:
-        node.ready()
-        reason = node.spin(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps)
-    finally:
-        node.close()
-    return 0 if reason in ("done", "aborted") else 1
+    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps)

@@ -27,10 +27,4 @@ def main(cfg: MissionConfig) -> int:
         node.publish("path", result.path)
         return {"plan": seconds}
 
-    try:
-        node.ready()
-        reason = node.spin(handle, cfg.ready_timeout_s + cfg.step_timeout_s,
-                           last_step=cfg.steps - 1)
-    finally:
-        node.close()
-    return 0 if reason in ("done", "aborted") else 1
+    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1)

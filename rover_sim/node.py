@@ -39,9 +39,6 @@ def main(cfg: MissionConfig) -> int:
         return stages
 
     try:
-        node.ready()
-        reason = node.spin(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps)
+        return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps)
     finally:
-        node.close()
         sim.close()
-    return 0 if reason in ("done", "aborted") else 1

@@ -200,6 +200,17 @@ class ModuleNode:
                     self.publish("timing", StepTiming(step, stage, seconds, self.dropped))
                 step += 1
 
+    def run(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
+            idle_timeout_s: float, last_step: int | None = None) -> int:
+        """Declare readiness, spin until the mission ends, close; returns the exit code
+        (0 when the mission said done or aborted)."""
+        try:
+            self.ready()
+            reason = self.spin(handler, idle_timeout_s, last_step)
+        finally:
+            self.close()
+        return 0 if reason in ("done", "aborted") else 1
+
     def close(self) -> None:
         """Undeclare everything and close the session."""
         if self._token is not None:

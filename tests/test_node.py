@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 from rovergate.messages import encode
 from rovergate.node import Input, ModuleNode, cdr_encoding
@@ -27,6 +28,13 @@ def test_node_drops_malformed_messages_and_runs_on(loopback_pair):
     thread.start()
     try:
         key, enc = "rover/sensor/base_pose", cdr_encoding("base_pose")
+        for k in (key, "rover/mission/status"):  # wait until the node's subscriptions are known
+            publisher = hub.declare_publisher(k)
+            deadline = time.monotonic() + 30
+            while not publisher.matching_status.matching:
+                assert time.monotonic() < deadline, f"no subscriber matched {k}"
+                time.sleep(0.01)
+            publisher.undeclare()
         hub.put(key, b"\x00\x01\x00\x00not a pose", encoding=enc)                    # garbage
         hub.put(key, encode("base_pose", (0, Pose.from_xyz_yaw(0, 0, 0, 0))))         # no schema
         hub.put(key, encode("status", MissionStatus(0, 5, "running", "obs", 0, 0)),
@@ -37,6 +45,9 @@ def test_node_drops_malformed_messages_and_runs_on(loopback_pair):
             hub.put("rover/mission/status",
                     encode("status", MissionStatus(step, 5, "running", "obs", 0.0, 0)),
                     encoding=cdr_encoding("status"))
+        deadline = time.monotonic() + 30
+        while len(handled) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
         hub.put("rover/mission/status", encode("status", MissionStatus(3, 5, "done", "obs", 0, 0)),
                 encoding=cdr_encoding("status"))
         thread.join(30)
