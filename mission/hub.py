@@ -28,7 +28,7 @@ from mission.record import MissionRecord
 from rovergate.config import MissionConfig, save_config
 from rovergate.keys import MODULES, Keys
 from rovergate.messages import MessageError, encode
-from rovergate.node import cdr_encoding, check_and_decode
+from rovergate.node import STOP, cdr_encoding, check_and_decode
 from rovergate.session import free_loopback_port, open_session
 from rovergate.types import MissionStatus, xyz
 
@@ -129,6 +129,8 @@ class Hub:
                 if left <= 0:
                     raise MissionFailed(f"timed out after {timeout_s:.0f} s waiting for {what}")
                 self._cv.wait(min(left, 0.2))
+                if STOP.is_set():
+                    raise KeyboardInterrupt
                 self.check_processes()
 
     def wait_ready(self) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+from gate.conditions import get_condition
 from gate.gate import Gate
 from mapper.mapper import Mapper
 from mission.coverage import CoverageEvaluator
@@ -21,7 +22,6 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
     sim = RoverSim(cfg)
     try:
         mapper = Mapper(cfg.mapper)
-        from gate.conditions import get_condition
         reference = sim.truth_occupancy() if get_condition(cfg.condition).needs_truth else None
         gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
         planner = make_planner(cfg)

@@ -8,6 +8,7 @@ loads a saved ``config.json`` first, and flags given after it override it. The s
 
 from __future__ import annotations
 
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -73,9 +74,23 @@ def parse(argv: list[str]) -> tuple[str, MissionConfig]:
     return command, cfg
 
 
+def _interrupt(signum, frame) -> None:
+    from rovergate.node import STOP
+    STOP.set()
+
+
 def main(argv: list[str] | None = None) -> None:
     command, cfg = parse(sys.argv[1:] if argv is None else argv)
-    raise SystemExit(COMMANDS[command](cfg))
+    # Ctrl-C and SIGTERM both mean: stop cleanly at the next wait (rovergate.node.STOP).
+    # Installed explicitly, because a process started in the background may inherit an
+    # ignored SIGINT.
+    signal.signal(signal.SIGINT, _interrupt)
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        code = COMMANDS[command](cfg)
+    except KeyboardInterrupt:
+        code = 130
+    raise SystemExit(code)
 
 
 if __name__ == "__main__":

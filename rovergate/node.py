@@ -11,6 +11,7 @@ key and the reason, counted, and dropped; the process runs on.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -27,6 +28,9 @@ from rovergate.session import SessionConfig, open_session
 from rovergate.types import StepTiming
 
 _MISSION_LOST = "__mission_lost__"
+
+#: Set by the CLI's SIGINT/SIGTERM handler; waits poll it and stop cleanly at a safe point.
+STOP = threading.Event()
 
 
 def cdr_encoding(topic: str) -> zenoh.Encoding:
@@ -172,13 +176,20 @@ class ModuleNode:
         """
         step = 0
         while True:
-            try:
-                topic, msg_step, value = self._queue.get(timeout=idle_timeout_s)
-            except queue.Empty:
+            deadline = time.monotonic() + idle_timeout_s
+            item = None
+            while item is None and not STOP.is_set() and time.monotonic() < deadline:
+                with contextlib.suppress(queue.Empty):
+                    item = self._queue.get(timeout=0.1)
+            if STOP.is_set():
+                self.log.info("interrupted; stopping")
+                return "interrupted"
+            if item is None:
                 awaited = ", ".join(f"{self.keys.key(self.inputs[n].topic)} step "
                                     f"{step - self.inputs[n].lag}" for n in self._missing(step))
                 self.log.error("no input for %.0f s; awaited %s", idle_timeout_s, awaited)
                 return "idle-timeout"
+            topic, msg_step, value = item
             if topic == _MISSION_LOST:
                 self.log.error("the mission's liveliness token vanished; stopping")
                 return "mission-lost"
@@ -209,7 +220,7 @@ class ModuleNode:
             reason = self.spin(handler, idle_timeout_s, last_step)
         finally:
             self.close()
-        return 0 if reason in ("done", "aborted") else 1
+        return 0 if reason in ("done", "aborted", "interrupted") else 1
 
     def close(self) -> None:
         """Undeclare everything and close the session."""
