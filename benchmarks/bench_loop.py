@@ -17,7 +17,7 @@ from pathlib import Path
 
 from mission.hub import run_processes
 from mission.loop import run_in_process
-from rover_sim.scene import resolve_scene
+from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig
 
 STAGES = ("render", "integrate", "gate", "plan", "execute")

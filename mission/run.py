@@ -14,7 +14,7 @@ from mapper.mapper import NO_MODEL_REASON, has_learned_model
 from mission.hub import MissionFailed, run_processes
 from mission.loop import run_in_process
 from mission.report import write_report
-from rover_sim.scene import resolve_scene
+from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig, save_config, to_dict
 from rovergate.logs import init_logging
 

@@ -60,3 +60,45 @@ def plan_se2(start: SE2, goal: SE2, is_free: Callable[[float, float, float], boo
 def path_length(path: list[SE2]) -> float:
     xy = np.array([p[:2] for p in path])
     return float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) if len(xy) > 1 else 0.0
+
+
+XYZ = tuple[float, float, float]
+
+
+def plan_r3(start: XYZ, goal: XYZ, is_free: Callable[[float, float, float], bool],
+            bounds: tuple[float, float, float, float, float, float], seed: int,
+            max_checks: int, resolution_m: float = 0.05) -> list[XYZ] | None:
+    """A collision-free path of positions from ``start`` to ``goal`` (both included), or None.
+
+    The flyer's path: positions only; its view direction turns along the path (the planner
+    interpolates it), which does not change what its sphere touches.
+    """
+    ou.RNG.setSeed(int(seed) % (2**31 - 1) + 1)
+    space = ob.RealVectorStateSpace(3)
+    b = ob.RealVectorBounds(3)
+    for i in range(3):
+        b.setLow(i, bounds[i])
+        b.setHigh(i, bounds[i + 3])
+    space.setBounds(b)
+    ss = og.SimpleSetup(space)
+    checks = [0]
+
+    def valid(state) -> bool:
+        checks[0] += 1
+        return is_free(state[0], state[1], state[2])
+
+    ss.setStateValidityChecker(valid)
+    si = ss.getSpaceInformation()
+    si.setStateValidityCheckingResolution(resolution_m / space.getMaximumExtent())
+    s, g = space.allocState(), space.allocState()
+    for state, p in ((s, start), (g, goal)):
+        for i in range(3):
+            state[i] = float(p[i])
+    ss.setStartAndGoalStates(s, g)
+    ss.setPlanner(og.RRTConnect(si))
+    ptc = ob.PlannerTerminationCondition(lambda: checks[0] >= max_checks)
+    status = ss.solve(ptc)
+    if not ss.haveExactSolutionPath() or "Exact" not in str(status):
+        return None
+    ss.simplifySolution()
+    return [(p[0], p[1], p[2]) for p in ss.getSolutionPath().getStates()]

@@ -14,11 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from planner.collision import OccupancyCollisionModel
 from planner.gain import render_gain
-from planner.motion import path_length, plan_se2
+from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
-from rovergate.platform import camera_from_base
 from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
 
 
@@ -73,62 +71,47 @@ def novel_mask(occupancy: PlannerMap, observed_min_views: int, radius_m: float) 
 class GreedyPlanner(Planner):
     """Next best view within the motion budget, as the paper's fixed planner does per step.
 
-    Sample candidate rover poses within ``max_step_m``; score each by rendered gain on the
-    planner-facing map; try them best first with OMPL (RRT-Connect in SE(2), FCL against the
-    same map) until one is feasible within the budget.
+    Sample candidate states within ``max_step_m``; score each by rendered gain on the
+    planner-facing map; try them best first with OMPL (RRT-Connect in the platform's space,
+    checked against the same map) until one is feasible within the budget.
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
         cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
-        x0, y0, yaw0 = float(T_map_base.position[0]), float(T_map_base.position[1]), \
-            T_map_base.yaw
-        z0 = float(T_map_base.position[2])
         points = xyz(occupancy.points)
-        bounds = cfg.scene.bounds_m
-        model = OccupancyCollisionModel(points, cfg.rover, bounds, pc.ground_cell_m,
-                                        pc.obstacle_voxel_m, fallback_ground_z=z0)
+        model = motion_model(cfg, points, T_map_base)
         rng = np.random.default_rng([cfg.seed, step])
-        r = pc.max_step_m * np.sqrt(rng.uniform(0, 1, pc.n_candidates))
-        th = rng.uniform(-np.pi, np.pi, pc.n_candidates)
-        yaw = rng.uniform(-np.pi, np.pi, pc.n_candidates)
-        margin = 0.5
-        cx = np.clip(x0 + r * np.cos(th), bounds[0] + margin, bounds[3] - margin)
-        cy = np.clip(y0 + r * np.sin(th), bounds[1] + margin, bounds[4] - margin)
-        candidates = list(zip(cx.tolist(), cy.tolist(), yaw.tolist(), strict=True))
-        cameras = [camera_from_base(Pose.from_xyz_yaw(x, y, model.ground_z(x, y), a).matrix(),
-                                    sensor) for x, y, a in candidates]
+        candidates = model.sample(rng, pc.n_candidates)
+        cameras = [model.camera(c) for c in candidates]
         k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
                                       sensor.vfov_deg).scaled(pc.gain_resolution)
         novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
         gains = render_gain(points, novel, cameras, k, sensor.min_range_m, sensor.max_range_m,
                             pc.zbuffer_tolerance_m)
-        travel = np.hypot(cx - x0, cy - y0)
+        here = np.array(model.current[:3 if cfg.platform == "flyer" else 2])
+        travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
         order = np.lexsort((travel, -gains))  # best gain first, then the nearer
-        box = (bounds[0], bounds[1], bounds[3], bounds[4])
         attempts = 0
         for i in order[: pc.max_attempts]:
             attempts += 1
             goal = candidates[i]
-            if not model.is_free(*goal):
+            if not model.is_free(goal):
                 continue
-            path = plan_se2((x0, y0, yaw0), goal, model.is_free, box,
-                            seed=cfg.seed * 100_003 + step * 101 + attempts,
-                            max_checks=pc.ompl_max_checks)
-            if path is None or path_length(path) > pc.max_step_m:
+            path = model.plan(model.current, goal,
+                              seed=cfg.seed * 100_003 + step * 101 + attempts)
+            if path is None or model.length(path) > pc.max_step_m:
                 continue
             return PlanResult(self._to_path(step, path, model), int(gains[i]), attempts,
                               "best-feasible")
-        turn = (x0, y0, yaw0 + np.pi / 2)
-        if model.is_free(*turn):
-            return PlanResult(self._to_path(step, [(x0, y0, yaw0), turn], model), 0, attempts,
+        turn = model.turn(model.current)
+        if model.is_free(turn):
+            return PlanResult(self._to_path(step, [model.current, turn], model), 0, attempts,
                               "rotate")
         return PlanResult(PlanPath(step, [T_map_base]), 0, attempts, "stay")
 
     @staticmethod
-    def _to_path(step: int, states: list[tuple[float, float, float]],
-                 model: OccupancyCollisionModel) -> PlanPath:
-        return PlanPath(step, [Pose.from_xyz_yaw(x, y, model.ground_z(x, y), a)
-                               for x, y, a in states])
+    def _to_path(step: int, states: list, model: MotionModel) -> PlanPath:
+        return PlanPath(step, [model.base_pose(s) for s in states])
 
 
 #: Planner registry: ``--planner.name`` chooses.

@@ -1,8 +1,11 @@
-"""The rover: kinematic SE(2) motion on the terrain, its mast camera, and true collisions.
+"""The rover: kinematic SE(2) motion on the terrain, its limits, and true collisions.
 
-The body's height, roll and pitch follow the terrain under its four wheels. Collisions are
-checked with FCL between the body (the box from ground clearance to body top) and the scene's
-obstacle meshes, at every ``check_spacing_m`` along a motion, not only at waypoints.
+The body's height, roll and pitch follow the terrain under its four wheels. Ground steeper than
+the slope limit, or departing from the wheels' plane by more than the step limit anywhere under
+the body, is untraversable: the rover stops before it, as a hazard-avoiding rover would.
+Collisions are checked with FCL between the body (the box from ground clearance to body top)
+and the scene's obstacle meshes, at every ``check_spacing_m`` along a motion, not only at
+waypoints, and the smallest clearance of the motion is reported.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ class MotionResult:
     min_clearance_m: float
     length_m: float
     executed_fraction: float
+    untraversable: bool = False
 
 
 class RoverBody:
@@ -36,6 +40,10 @@ class RoverBody:
         self.scene = scene
         self.cfg = rover
         mesh = scene.objects_mesh
+        if len(mesh.faces) == 0:  # no obstacles: a far-away speck keeps FCL's model valid
+            import trimesh
+            mesh = trimesh.creation.box(extents=[1e-3] * 3)
+            mesh.apply_translation([0.0, 0.0, -1e6])
         bvh = fcl.BVHModel()
         bvh.beginModel(len(mesh.vertices), len(mesh.faces))
         bvh.addSubModel(mesh.vertices, mesh.faces)
@@ -62,6 +70,30 @@ class RoverBody:
         T[:3, 3] = [x, y, z]
         return T
 
+    def terrain_check(self, x: float, y: float, yaw: float) -> tuple[float, float]:
+        """(slope_deg, step_m) of the ground under the body at (x, y, yaw).
+
+        The slope is the tilt of the plane through the four wheel contacts; the step is the
+        largest distance between the ground and that plane at 3 x 5 points under the body.
+        """
+        c, s = np.cos(yaw), np.sin(yaw)
+        u = np.array([-1.0, -0.5, 0.0, 0.5, 1.0]) * self.cfg.length_m / 2
+        v = np.array([-1.0, 0.0, 1.0]) * self.cfg.width_m / 2
+        U, V = np.meshgrid(u, v)
+        X, Y = x + c * U - s * V, y + s * U + c * V
+        Z = self.scene.height_at(X, Y)
+        corners = Z[[0, 0, 2, 2], [0, 4, 0, 4]]
+        Uc, Vc = U[[0, 0, 2, 2], [0, 4, 0, 4]], V[[0, 0, 2, 2], [0, 4, 0, 4]]
+        A = np.c_[np.ones(4), Uc, Vc]
+        coef = np.linalg.lstsq(A, corners, rcond=None)[0]
+        plane = coef[0] + coef[1] * U + coef[2] * V
+        slope = float(np.degrees(np.arctan(np.hypot(coef[1], coef[2]))))
+        return slope, float(np.abs(Z - plane).max())
+
+    def traversable(self, x: float, y: float, yaw: float) -> bool:
+        slope, step = self.terrain_check(x, y, yaw)
+        return slope <= self.cfg.slope_limit_deg and step <= self.cfg.step_limit_m
+
     def clearance(self, T_map_base: np.ndarray) -> float:
         """Distance between the body box and the scene's obstacles (<= 0: collision)."""
         R = T_map_base[:3, :3]
@@ -73,14 +105,18 @@ class RoverBody:
               waypoints: list[tuple[float, float, float]]) -> MotionResult:
         """Drive from ``start`` through ``waypoints`` (x, y, yaw), checking the whole motion.
 
-        The rover stops at the last collision-free sample before the first collision.
+        The rover stops at the last collision-free sample before the first collision, or before
+        the first untraversable one (the start itself is not judged: the rover may leave it).
         """
         samples = _densify([start, *waypoints], self.cfg.check_spacing_m)
         total = _length(samples)
         last_free = samples[0]
         min_clear = np.inf
-        collided, n_collisions = False, 0
-        for pose in samples:
+        collided, n_collisions, blocked = False, 0, False
+        for k, pose in enumerate(samples):
+            if k > 0 and not self.traversable(*pose):
+                blocked = True
+                break
             d = self.clearance(self.base_pose(*pose))
             min_clear = min(min_clear, d)
             if d <= 0.0:
@@ -89,7 +125,7 @@ class RoverBody:
             last_free = pose
         driven = _length(samples[: samples.index(last_free) + 1])
         return MotionResult(last_free, collided, n_collisions, float(min_clear), driven,
-                            driven / total if total > 0 else 1.0)
+                            driven / total if total > 0 else 1.0, blocked)
 
 
 def _wrap(a: float) -> float:

@@ -1,8 +1,11 @@
-"""The simulator's logic: render what the rover senses, execute the paths it is given.
+"""The simulator's logic: render what the platform senses, execute the paths it is given.
 
 :class:`RoverSim` takes and returns plain data (no Zenoh): :meth:`render` gives the
 :class:`~rovergate.types.SensorFrame` of a step, :meth:`execute` drives a
-:class:`~rovergate.types.PlanPath` in the true world and reports what happened.
+:class:`~rovergate.types.PlanPath` in the true world and reports what happened. The platform
+is the rover (SE(2) on the terrain, mast camera) or the flyer (a free camera). With pose drift
+the published poses are the drifted ones; rendering, collisions and ground truth use the true
+pose.
 """
 
 from __future__ import annotations
@@ -11,57 +14,93 @@ import logging
 
 import numpy as np
 
+from rover_sim.catalog import load_scene
+from rover_sim.flyer import FlyerBody
 from rover_sim.rover import RoverBody
-from rover_sim.scene import Scene, load_scene
+from rover_sim.scene import Scene
+from rover_sim.sensing import Sensing
 from rover_sim.world import PyBulletWorld
 from rovergate.config import MissionConfig
-from rovergate.platform import camera_from_base
+from rovergate.platform import camera_from_base, check_platform
 from rovergate.types import ExecutionReport, PlanPath, Pose, SensorFrame
 
 log = logging.getLogger("rovergate.sim")
 
 
 class RoverSim:
-    """A rover in a true world: depth rendering, kinematic motion, collision reporting."""
+    """A platform in a true world: depth rendering, kinematic motion, collision reporting."""
 
     def __init__(self, cfg: MissionConfig, scene: Scene | None = None) -> None:
         self.cfg = cfg
-        self.scene = scene or load_scene(cfg.scene.name)
+        check_platform(cfg.platform)
+        self.scene = scene or load_scene(cfg.scene)
         if cfg.start not in self.scene.starts:
             raise SystemExit(f"error: scene {self.scene.name!r} has no start {cfg.start!r}; "
                              f"choose one of: {', '.join(self.scene.starts)}")
-        self.body = RoverBody(self.scene, cfg.rover)
-        self.world = PyBulletWorld(self.scene, cfg.sensor, cfg.rover)
-        self.state = self.scene.starts[cfg.start]
+        x, y, yaw = self.scene.starts[cfg.start]
+        self.flying = cfg.platform == "flyer"
+        if self.flying:
+            self.body: RoverBody | FlyerBody = FlyerBody(self.scene, cfg.flyer,
+                                                         cfg.rover.check_spacing_m)
+            self.state: tuple[float, ...] = self.body.start_state(x, y, yaw)
+            clear = self.body.clearance(self.state[:3])
+        else:
+            self.body = RoverBody(self.scene, cfg.rover)
+            self.state = (x, y, yaw)
+            clear = self.body.clearance(self.T_map_base)
+        if clear <= 0:
+            log.warning("start %r of %s touches the scene for this platform configuration",
+                        cfg.start, self.scene.name)
+        self.world = PyBulletWorld(self.scene, cfg.sensor, None if self.flying else cfg.rover)
+        self.sensing = Sensing(cfg.sensing, cfg.seed)
+        self._drift = np.eye(4)
+        self._step = 0
         self._truth_surface: np.ndarray | None = None
 
     @property
     def T_map_base(self) -> np.ndarray:
+        """The true base pose."""
         return self.body.base_pose(*self.state)
 
     def render(self, step: int) -> SensorFrame:
-        """What the rover senses at its current pose."""
+        """What the platform senses at its current pose (poses as it believes them)."""
         T_base = self.T_map_base
-        T_cam = camera_from_base(T_base, self.cfg.sensor)
+        T_cam = camera_from_base(T_base, self.cfg.sensor, self.cfg.platform)
         self.world.set_rover_pose(T_base)
         depth = self.world.render_depth(T_cam)
-        return SensorFrame(step, depth, self.world.intrinsics, Pose.from_matrix(T_cam),
-                           Pose.from_matrix(T_base))
+        depth = self.sensing.degrade(depth, self.world.intrinsics, step)
+        self._step = step
+        self._drift = self.sensing.drift_transform(T_base, step)
+        return SensorFrame(step, depth, self.world.intrinsics,
+                           Pose.from_matrix(self._drift @ T_cam),
+                           Pose.from_matrix(self._drift @ T_base))
+
+    def _true_state(self, pose: Pose) -> tuple[float, ...]:
+        """A commanded pose (in the platform's believed frame) as a true state."""
+        p = Pose.from_matrix(np.linalg.inv(self._drift) @ pose.matrix())
+        x, y, z = (float(v) for v in p.position)
+        return (x, y, z, p.yaw, p.pitch) if self.flying else (x, y, p.yaw)
 
     def execute(self, path: PlanPath) -> ExecutionReport:
-        """Drive along ``path`` (its poses' x, y and heading); collisions stop the rover."""
-        waypoints = [(float(p.position[0]), float(p.position[1]), p.yaw) for p in path.poses]
+        """Drive along ``path``; collisions and untraversable ground stop the platform."""
+        waypoints = [self._true_state(p) for p in path.poses]
+        error = float(np.linalg.norm(self.sensing.drift_at(path.step + 1)[:3]))
         if not waypoints:
-            return ExecutionReport(path.step, False, 0, self.body.clearance(self.T_map_base),
-                                   0.0, 1.0)
+            clear = (self.body.clearance(self.state[:3]) if self.flying
+                     else self.body.clearance(self.T_map_base))
+            return ExecutionReport(path.step, False, 0, clear, 0.0, 1.0, False, error)
         motion = self.body.drive(self.state, waypoints)
         if motion.collided:
-            log.warning("step %d: the rover hit the true scene after %.2f m (%.0f%% of the "
-                        "path); it stopped at the last free pose", path.step, motion.length_m,
-                        100 * motion.executed_fraction)
+            log.warning("step %d: the %s hit the true scene after %.2f m (%.0f%% of the "
+                        "path); it stopped at the last free pose", path.step, self.cfg.platform,
+                        motion.length_m, 100 * motion.executed_fraction)
+        elif motion.untraversable:
+            log.info("step %d: untraversable ground ahead after %.2f m; the rover stopped",
+                     path.step, motion.length_m)
         self.state = motion.final_xy_yaw
         return ExecutionReport(path.step, motion.collided, motion.collision_samples,
-                               motion.min_clearance_m, motion.length_m, motion.executed_fraction)
+                               motion.min_clearance_m, motion.length_m, motion.executed_fraction,
+                               motion.untraversable, error)
 
     def truth_surface(self) -> np.ndarray:
         """(N, 3) float32 ground-truth surface samples (evaluation and oracles only)."""

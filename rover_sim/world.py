@@ -20,16 +20,30 @@ NEAR_M = 0.05
 class PyBulletWorld:
     """Owns one pybullet client with the scene and the rover in it."""
 
-    def __init__(self, scene: Scene, sensor: SensorConfig, rover: RoverConfig) -> None:
+    def __init__(self, scene: Scene, sensor: SensorConfig, rover: RoverConfig | None) -> None:
+        """``rover`` None: no rover body in the world (the flyer is a bare camera)."""
         self.sensor = sensor
         self.client = pb.connect(pb.DIRECT)
         c = self.client
-        for mesh, rgba in [(scene.terrain, [0.72, 0.45, 0.3, 1]),
-                           (scene.objects_mesh, [0.55, 0.4, 0.33, 1])]:
+        self.rover_id = self.mast_id = -1
+        for mesh, rgba in scene.visual_meshes:
+            if len(mesh.faces) == 0:
+                continue
             vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
                                        indices=mesh.faces.ravel().tolist(), rgbaColor=rgba,
                                        physicsClientId=c)
             pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=c)
+        self.far_m = sensor.max_range_m * 1.5
+        self.intrinsics = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
+                                                    sensor.vfov_deg)
+        self._projection = pb.computeProjectionMatrixFOV(
+            fov=sensor.vfov_deg, aspect=sensor.width_px / sensor.height_px, nearVal=NEAR_M,
+            farVal=self.far_m, physicsClientId=c)
+        if rover is not None:
+            self._add_rover(sensor, rover)
+
+    def _add_rover(self, sensor: SensorConfig, rover: RoverConfig) -> None:
+        c = self.client
         body_h = rover.body_top_m - rover.clearance_m
         body = pb.createVisualShape(
             pb.GEOM_BOX, halfExtents=[rover.length_m / 2, rover.width_m / 2, body_h / 2],
@@ -44,14 +58,10 @@ class PyBulletWorld:
             physicsClientId=c)
         self.mast_id = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=mast,
                                           physicsClientId=c)
-        self.far_m = sensor.max_range_m * 1.5
-        self.intrinsics = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
-                                                    sensor.vfov_deg)
-        self._projection = pb.computeProjectionMatrixFOV(
-            fov=sensor.vfov_deg, aspect=sensor.width_px / sensor.height_px, nearVal=NEAR_M,
-            farVal=self.far_m, physicsClientId=c)
 
     def set_rover_pose(self, T_map_base: np.ndarray) -> None:
+        if self.rover_id < 0:
+            return
         q = matrix_to_quat(T_map_base[:3, :3])
         for body in (self.rover_id, self.mast_id):
             pb.resetBasePositionAndOrientation(body, T_map_base[:3, 3].tolist(), q.tolist(),
@@ -71,7 +81,8 @@ class PyBulletWorld:
         seg = np.asarray(seg).reshape(s.height_px, s.width_px)
         depth = self.far_m * NEAR_M / (self.far_m - (self.far_m - NEAR_M) * zbuf)
         invalid = (zbuf >= 1.0 - 1e-7) | (depth < s.min_range_m) | (depth > s.max_range_m)
-        invalid |= (seg == self.rover_id) | (seg == self.mast_id)
+        if self.rover_id >= 0:
+            invalid |= (seg == self.rover_id) | (seg == self.mast_id)
         return np.where(invalid, np.nan, depth).astype(np.float32)
 
     def close(self) -> None:

@@ -31,7 +31,7 @@ commands:
 
 def _module_main(name: str) -> Callable[[MissionConfig], int]:
     def main(cfg: MissionConfig) -> int:
-        from rover_sim.scene import resolve_scene
+        from rover_sim.catalog import resolve_scene
         resolve_scene(cfg.scene)
         if name == "sim":
             from rover_sim.node import main as m

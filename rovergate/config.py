@@ -24,7 +24,15 @@ class SceneConfig:
     """Which world to map."""
 
     name: str = "arch_field"
-    """Scene name (see `rovergate run --help`; procedural scenes are deterministic)."""
+    """A suite scene (`rovergate scenes` lists them) or the path of a mesh file that trimesh
+    reads (OBJ, PLY, STL, GLB). `--scene X` is short for `--scene.name X`."""
+    up_axis: str = "z"
+    """Mesh scenes: the file's up axis (x, y, z, -x, -y or -z); it becomes +z."""
+    scale: float = 1.0
+    """Mesh scenes: metres per file unit."""
+    region_m: float = 40.0
+    """Mesh scenes: the default box of interest is the mesh's footprint, cut to a square of at
+    most this side around its centre (a rover's working area)."""
     d_scene_m: float = 0.0
     """Diagonal of the scene's box of interest. 0: take it from the scene (recommended)."""
     bounds_m: tuple[float, float, float, float, float, float] = (0, 0, 0, 0, 0, 0)
@@ -73,6 +81,55 @@ class RoverConfig:
     """Top of the body above the ground (the mast above it is thin and is not checked)."""
     check_spacing_m: float = 0.05
     """Spacing of collision checks along an executed motion."""
+    slope_limit_deg: float = 25.0
+    """Steepest ground the rover drives on (roll or pitch of the plane under its wheels)."""
+    step_limit_m: float = 0.2
+    """Highest step under the body: the ground may depart this far from the wheels' plane."""
+
+
+@dataclass
+class FlyerConfig:
+    """The free-flying camera (the paper's benchmark platform): a sphere with a camera."""
+
+    radius_m: float = 0.3
+    """Radius of the sphere that must stay clear of the scene."""
+    altitude_m: float = 1.6
+    """Height above the ground of the flyer's starts."""
+    min_altitude_m: float = 0.5
+    """Lowest height above the ground the planner flies at."""
+    max_altitude_m: float = 6.0
+    """Highest height above the ground the planner flies at."""
+    min_pitch_deg: float = -60.0
+    """Lowest view direction (negative looks down)."""
+    max_pitch_deg: float = 20.0
+    """Highest view direction."""
+
+
+@dataclass
+class SensingConfig:
+    """Degraded sensing (the paper's untested conditions, its Table 3). All off by default;
+    every draw is seeded from the mission seed and the step."""
+
+    noise_frac: float = 0.0
+    """Depth noise: standard deviation as a fraction of the range (0.01: 1 cm at 1 m)."""
+    dropout_pixel_prob: float = 0.0
+    """Independent missing returns: probability that a pixel has none."""
+    dropout_blob_frac: float = 0.0
+    """Structured missing returns: the share of each image lost in blobs."""
+    dropout_blob_px: float = 4.0
+    """Blob size: the smoothing scale, in pixels, of the field the blobs are cut from."""
+    grazing_max_deg: float = 90.0
+    """Returns from surfaces seen at an incidence angle above this are lost (90: off)."""
+    drift_xy_m: float = 0.0
+    """Pose drift: standard deviation per step of the random walk in x and y."""
+    drift_z_m: float = 0.0
+    """Pose drift: standard deviation per step of the random walk in z."""
+    drift_yaw_deg: float = 0.0
+    """Pose drift: standard deviation per step of the random walk in heading."""
+
+    @property
+    def drifts(self) -> bool:
+        return self.drift_xy_m > 0 or self.drift_z_m > 0 or self.drift_yaw_deg > 0
 
 
 @dataclass
@@ -137,6 +194,8 @@ class MissionConfig:
     """One closed-loop mission."""
 
     scene: SceneConfig = field(default_factory=SceneConfig)
+    platform: str = "rover"
+    """rover (SE(2) on the terrain, mast camera) or flyer (a free 6-DoF camera)."""
     start: str = "a"
     """Named start of the scene."""
     steps: int = 100
@@ -156,7 +215,9 @@ class MissionConfig:
     progress: bool = True
     """Show a progress bar."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
+    sensing: SensingConfig = field(default_factory=SensingConfig)
     rover: RoverConfig = field(default_factory=RoverConfig)
+    flyer: FlyerConfig = field(default_factory=FlyerConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
     gate: GateConfig = field(default_factory=GateConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)

@@ -213,13 +213,15 @@ def execution_to_ros(r: ExecutionReport):
     return _T["rovergate_msgs/msg/ExecutionReport"](
         header=_header(r.step), step=r.step, collided=bool(r.collided),
         collision_samples=r.collision_samples, min_clearance_m=float(r.min_clearance_m),
-        path_length_m=float(r.path_length_m), executed_fraction=float(r.executed_fraction))
+        path_length_m=float(r.path_length_m), executed_fraction=float(r.executed_fraction),
+        untraversable=bool(r.untraversable), pose_error_m=float(r.pose_error_m))
 
 
 def execution_from_ros(m) -> ExecutionReport:
     return ExecutionReport(int(m.step), bool(m.collided), int(m.collision_samples),
                            float(m.min_clearance_m), float(m.path_length_m),
-                           float(m.executed_fraction))
+                           float(m.executed_fraction), bool(m.untraversable),
+                           float(m.pose_error_m))
 
 
 def timing_to_ros(t: StepTiming):

@@ -74,6 +74,20 @@ class Pose:
     def from_xyz_yaw(cls, x: float, y: float, z: float, yaw: float) -> Pose:
         return cls(np.array([x, y, z], dtype=np.float64), yaw_to_quat(yaw))
 
+    @classmethod
+    def from_xyz_yaw_pitch(cls, x: float, y: float, z: float, yaw: float,
+                           pitch: float) -> Pose:
+        """A body pose (x forward) heading ``yaw`` and looking ``pitch`` up from level."""
+        cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+        R = np.array([[cy * cp, -sy, -cy * sp], [sy * cp, cy, -sy * sp], [sp, 0.0, cp]])
+        return cls(np.array([x, y, z], dtype=np.float64), matrix_to_quat(R))
+
+    @property
+    def pitch(self) -> float:
+        """Elevation of the body's x axis above the horizontal, radians."""
+        R = quat_to_matrix(self.orientation_xyzw)
+        return float(np.arcsin(np.clip(R[2, 0], -1.0, 1.0)))
+
     def matrix(self) -> np.ndarray:
         """(4, 4) float64 homogeneous transform."""
         T = np.eye(4)
@@ -202,6 +216,8 @@ class ExecutionReport:
     min_clearance_m: float
     path_length_m: float
     executed_fraction: float
+    untraversable: bool = False
+    pose_error_m: float = 0.0
 
 
 @dataclass

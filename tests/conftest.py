@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from rover_sim.scene import load_scene, resolve_scene
+from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.config import MissionConfig
 from rovergate.session import SessionConfig, free_loopback_port, zenoh_config
 

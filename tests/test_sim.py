@@ -7,8 +7,8 @@ import pytest
 
 from mapper.integrate import backproject
 from rover_sim.rover import RoverBody
-from rover_sim.scene import build_arch_field
 from rover_sim.sim import RoverSim
+from rover_sim.suite import build_arch_field
 from rovergate.config import MissionConfig, RoverConfig
 from rovergate.types import PlanPath, Pose
 

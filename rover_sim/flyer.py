@@ -1,0 +1,75 @@
+"""The flyer: a free-flying camera (the paper's benchmark platform) and its true collisions.
+
+Its state is (x, y, z, yaw, pitch): a position and a view direction; the body is a sphere
+that must stay clear of all true geometry, ground included. Motion is checked with FCL every
+``check_spacing_m`` along the straight segments between waypoints, as the rover's is.
+"""
+
+from __future__ import annotations
+
+import fcl
+import numpy as np
+
+from rover_sim.rover import MotionResult
+from rover_sim.scene import Scene
+from rovergate.config import FlyerConfig
+from rovergate.types import Pose
+
+FlyerState = tuple[float, float, float, float, float]
+
+
+class FlyerBody:
+    """Sphere kinematics and FCL clearance against the whole true scene."""
+
+    def __init__(self, scene: Scene, flyer: FlyerConfig, check_spacing_m: float) -> None:
+        self.scene = scene
+        self.cfg = flyer
+        self.spacing = check_spacing_m
+        mesh = scene.solid_mesh
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
+        bvh.addSubModel(mesh.vertices, mesh.faces)
+        bvh.endModel()
+        self._scene_obj = fcl.CollisionObject(bvh, fcl.Transform())
+        self._sphere = fcl.CollisionObject(fcl.Sphere(flyer.radius_m))
+
+    def start_state(self, x: float, y: float, yaw: float) -> FlyerState:
+        """The flyer's start above a named (ground) start, looking level along ``yaw``."""
+        return (x, y, float(self.scene.height_at(x, y)) + self.cfg.altitude_m, yaw, 0.0)
+
+    @staticmethod
+    def base_pose(x: float, y: float, z: float, yaw: float, pitch: float) -> np.ndarray:
+        return Pose.from_xyz_yaw_pitch(x, y, z, yaw, pitch).matrix()
+
+    def clearance(self, xyz) -> float:
+        """Distance between the sphere at ``xyz`` and the scene (<= 0: collision)."""
+        self._sphere.setTransform(fcl.Transform(np.asarray(xyz, dtype=np.float64)))
+        return float(fcl.distance(self._sphere, self._scene_obj, fcl.DistanceRequest(),
+                                  fcl.DistanceResult()))
+
+    def drive(self, start: FlyerState, waypoints: list[FlyerState]) -> MotionResult:
+        """Fly from ``start`` through ``waypoints``; stops before the first collision."""
+        states = [start, *waypoints]
+        samples = [states[0]]
+        for a, b in zip(states[:-1], states[1:], strict=True):
+            n = max(1, int(np.ceil(np.linalg.norm(np.subtract(b[:3], a[:3])) / self.spacing)))
+            dyaw = (b[3] - a[3] + np.pi) % (2 * np.pi) - np.pi
+            for k in range(1, n + 1):
+                f = k / n
+                p = [a[i] + f * (b[i] - a[i]) for i in range(3)]
+                samples.append((*p, a[3] + f * dyaw, a[4] + f * (b[4] - a[4])))
+        last, min_clear, collided, hits = 0, np.inf, False, 0
+        for k, s in enumerate(samples):
+            d = self.clearance(s[:3])
+            min_clear = min(min_clear, d)
+            if d <= 0.0:
+                collided, hits = True, 1
+                break
+            last = k
+        xyz = np.array([s[:3] for s in samples])
+        seg = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+        total, driven = float(seg.sum()), float(seg[:last].sum())
+        final = samples[last]
+        final = (*final[:3], float((final[3] + np.pi) % (2 * np.pi) - np.pi), final[4])
+        return MotionResult(final, collided, hits, float(min_clear), driven,
+                            driven / total if total > 0 else 1.0)
