@@ -7,17 +7,19 @@ and its top above that ground (overhangs higher than the body are passed under; 
 than the clearance are driven over). Each obstacle point becomes a small box in an FCL
 broad-phase manager; the rover is the box of its body, placed on the estimated ground.
 
-The rover's limits are checked on the same estimate: the plane through the ground under its
-four wheels must be no steeper than the slope limit, and the lowest map point of each cell under
-the body no farther from that plane than the step limit (cells without points are unknown and
-pass). The flyer's model (:class:`FlyerCollisionModel`) keeps its sphere clear of every map
-point and between its altitude limits over the estimated ground.
+The rover's limits are checked on the same estimate: the plane fitted to the lowest map points
+of the cells around a pose must be no steeper than the slope limit, and none of them farther
+from it than the step limit (cells without points are unknown and pass, unless the rover drives
+on known ground only). The flyer's model (:class:`FlyerCollisionModel`) keeps its sphere clear
+of every map point and between its altitude limits over the estimated ground.
 
 Everything reads the same planner-facing map as the gain: a hallucinated point both attracts
 the platform and blocks its way, as in the paper.
 """
 
 from __future__ import annotations
+
+import math
 
 import fcl
 import numpy as np
@@ -38,6 +40,7 @@ class OccupancyCollisionModel:
         xmin, ymin, _, xmax, ymax, _ = bounds_m
         margin = 5.0
         self.origin = np.array([xmin - margin, ymin - margin])
+        self._ox, self._oy = float(self.origin[0]), float(self.origin[1])
         self.shape = (int(np.ceil((ymax - ymin + 2 * margin) / ground_cell_m)) + 1,
                       int(np.ceil((xmax - xmin + 2 * margin) / ground_cell_m)) + 1)
         grid = np.full(self.shape, np.inf)
@@ -64,42 +67,82 @@ class OccupancyCollisionModel:
         self._body = fcl.CollisionObject(fcl.Box(rover.length_m, rover.width_m, body_h))
         self._body_dz = rover.clearance_m + body_h / 2
         self.checks = 0
+        self._terrain: tuple[np.ndarray, np.ndarray] | None = None
+        self.known_ground_only = False
+        self.home: tuple[float, float] | None = None
+        self.home_radius = float(np.hypot(rover.length_m, rover.width_m))
+
+    def drive_known_ground_only(self, x: float, y: float) -> None:
+        """From now on, poses farther than a body diagonal from (x, y) need map points under
+        at least three of their wheels: the rover drives where it has seen (or predicted)
+        ground, not into its camera's blind spots."""
+        self.known_ground_only = True
+        self.home = (x, y)
 
     def _cells(self, xy: np.ndarray) -> np.ndarray:
         ij = np.floor((xy - self.origin) / self.cell).astype(np.int64)
         return ij[:, ::-1]  # (row = y, col = x)
 
+    def _cell(self, x: float, y: float) -> tuple[int, int]:
+        """(row, col) of one point: the scalar fast path of :meth:`_cells` (OMPL calls it
+        thousands of times a step)."""
+        return (math.floor((y - self._oy) / self.cell), math.floor((x - self._ox) / self.cell))
+
     def ground_z(self, x: float, y: float) -> float:
         """Estimated ground height under (x, y); the fallback where the map has no points."""
-        i, j = self._cells(np.array([[x, y]]))[0]
+        i, j = self._cell(x, y)
         if 0 <= i < self.shape[0] and 0 <= j < self.shape[1] and np.isfinite(self.ground[i, j]):
             return float(self.ground[i, j])
         return self.fallback_ground_z
 
+    def _terrain_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per cell: whether the ground around it is known, and whether it is within limits.
+
+        A plane is fitted by least squares to the known cells of the 3 x 3 window around each
+        cell (a square of 1.5 m: the body in any heading); the cell fails when the plane is
+        steeper than the slope limit or a known cell departs from it by more than the step
+        limit. Computed once per map, for every cell at once.
+        """
+        raw = self.raw_ground
+        K = np.isfinite(raw).astype(np.float64)
+        Zk = np.where(K > 0, raw, 0.0)
+        pad = lambda a: np.pad(a, 1)  # noqa: E731
+        Kp, Zp = pad(K), pad(Zk)
+        h, w = raw.shape
+        offs = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+        M = np.zeros((h, w, 3, 3))
+        r = np.zeros((h, w, 3))
+        for di, dj in offs:
+            k = Kp[1 + di:1 + di + h, 1 + dj:1 + dj + w]
+            z = Zp[1 + di:1 + di + h, 1 + dj:1 + dj + w]
+            f = np.array([1.0, dj * self.cell, di * self.cell])
+            M += k[..., None, None] * np.outer(f, f)
+            r += (k * z)[..., None] * f
+        known = sum(
+            Kp[1 + di:1 + di + h, 1 + dj:1 + dj + w] for di, dj in offs) >= 4
+        M[~known] = np.eye(3)
+        r[~known] = 0.0
+        coef = np.linalg.solve(M, r[..., None])[..., 0]
+        ok = np.hypot(coef[..., 1], coef[..., 2]) <= np.tan(np.radians(self.rover.slope_limit_deg))
+        for di, dj in offs:
+            k = Kp[1 + di:1 + di + h, 1 + dj:1 + dj + w] > 0
+            z = Zp[1 + di:1 + di + h, 1 + dj:1 + dj + w]
+            plane = coef[..., 0] + coef[..., 1] * dj * self.cell + coef[..., 2] * di * self.cell
+            ok &= ~k | (np.abs(z - plane) <= self.rover.step_limit_m)
+        return known, ok | ~known
+
     def traversable(self, x: float, y: float, yaw: float) -> bool:
-        """Whether the estimated ground under the body is within the slope and step limits."""
-        c, s = np.cos(yaw), np.sin(yaw)
-        u = np.array([-1.0, -0.5, 0.0, 0.5, 1.0]) * self.rover.length_m / 2
-        v = np.array([-1.0, 0.0, 1.0]) * self.rover.width_m / 2
-        U, V = np.meshgrid(u, v)
-        ij = self._cells(np.c_[(x + c * U - s * V).ravel(), (y + s * U + c * V).ravel()])
-        inside = ((ij[:, 0] >= 0) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] >= 0)
-                  & (ij[:, 1] < self.shape[1]))
-        if not inside.all():
-            return True
-        Z = self.raw_ground[ij[:, 0], ij[:, 1]].reshape(U.shape)
-        corners = Z[[0, 0, 2, 2], [0, 4, 0, 4]]
-        known = np.isfinite(corners)
-        if known.sum() >= 3:
-            A = np.c_[np.ones(4), U[[0, 0, 2, 2], [0, 4, 0, 4]], V[[0, 0, 2, 2], [0, 4, 0, 4]]]
-            coef = np.linalg.lstsq(A[known], corners[known], rcond=None)[0]
-            if np.degrees(np.arctan(np.hypot(coef[1], coef[2]))) > self.rover.slope_limit_deg:
-                return False
-            plane = coef[0] + coef[1] * U + coef[2] * V
-            below = np.isfinite(Z)
-            if np.any(np.abs(Z[below] - plane[below]) > self.rover.step_limit_m):
-                return False
-        return True
+        """Whether the estimated ground at (x, y) is within the slope and step limits (and,
+        driving on known ground only, known there or near where the rover stands)."""
+        if self._terrain is None:
+            self._terrain = self._terrain_grid()
+        known, ok = self._terrain
+        i, j = self._cell(x, y)
+        if not (0 <= i < self.shape[0] and 0 <= j < self.shape[1]):
+            return not self.known_ground_only
+        if not known[i, j] and self.known_ground_only and self.home is not None:
+            return bool(np.hypot(x - self.home[0], y - self.home[1]) <= self.home_radius)
+        return bool(ok[i, j])
 
     def is_free(self, x: float, y: float, yaw: float) -> bool:
         """Whether the body at (x, y, yaw) on the estimated ground touches no obstacle point

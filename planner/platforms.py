@@ -69,6 +69,11 @@ class MotionModel(abc.ABC):
 
 
 class RoverModel(MotionModel):
+    def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose) -> None:
+        super().__init__(cfg, points, T_map_base)
+        if cfg.planner.known_ground_only:
+            self.ground.drive_known_ground_only(*self.current[:2])
+
     def state_of(self, T: Pose) -> State:
         return (float(T.position[0]), float(T.position[1]), T.yaw)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import fcl
 import numpy as np
 
-from rover_sim.rover import MotionResult
+from rover_sim.rover import STOP_MARGIN_M, MotionResult, clearance
 from rover_sim.scene import Scene
 from rovergate.config import FlyerConfig
 from rovergate.types import Pose
@@ -44,8 +44,7 @@ class FlyerBody:
     def clearance(self, xyz) -> float:
         """Distance between the sphere at ``xyz`` and the scene (<= 0: collision)."""
         self._sphere.setTransform(fcl.Transform(np.asarray(xyz, dtype=np.float64)))
-        return float(fcl.distance(self._sphere, self._scene_obj, fcl.DistanceRequest(),
-                                  fcl.DistanceResult()))
+        return clearance(self._sphere, self._scene_obj)
 
     def drive(self, start: FlyerState, waypoints: list[FlyerState]) -> MotionResult:
         """Fly from ``start`` through ``waypoints``; stops before the first collision."""
@@ -58,14 +57,18 @@ class FlyerBody:
                 f = k / n
                 p = [a[i] + f * (b[i] - a[i]) for i in range(3)]
                 samples.append((*p, a[3] + f * dyaw, a[4] + f * (b[4] - a[4])))
-        last, min_clear, collided, hits = 0, np.inf, False, 0
-        for k, s in enumerate(samples):
+        clear, min_clear, collided, hits = [], np.inf, False, 0
+        for s in samples:
             d = self.clearance(s[:3])
             min_clear = min(min_clear, d)
             if d <= 0.0:
                 collided, hits = True, 1
                 break
-            last = k
+            clear.append(d)
+        last = len(clear) - 1
+        while collided and last > 0 and clear[last] < STOP_MARGIN_M:
+            last -= 1  # halt STOP_MARGIN_M short of the contact, as the rover does
+        last = max(last, 0)
         xyz = np.array([s[:3] for s in samples])
         seg = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
         total, driven = float(seg.sum()), float(seg[:last].sum())

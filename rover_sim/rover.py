@@ -33,6 +33,10 @@ class MotionResult:
     untraversable: bool = False
 
 
+#: After a collision the rover stands back this far from the contact (or at its start).
+STOP_MARGIN_M = 0.1
+
+
 class RoverBody:
     """Terrain-following kinematics and FCL collision checks against the true obstacles."""
 
@@ -98,8 +102,7 @@ class RoverBody:
         """Distance between the body box and the scene's obstacles (<= 0: collision)."""
         R = T_map_base[:3, :3]
         self._body.setTransform(fcl.Transform(R, T_map_base[:3, 3] + R @ self._body_offset))
-        result = fcl.DistanceResult()
-        return float(fcl.distance(self._body, self._scene_obj, fcl.DistanceRequest(), result))
+        return clearance(self._body, self._scene_obj)
 
     def drive(self, start: tuple[float, float, float],
               waypoints: list[tuple[float, float, float]]) -> MotionResult:
@@ -110,7 +113,7 @@ class RoverBody:
         """
         samples = _densify([start, *waypoints], self.cfg.check_spacing_m)
         total = _length(samples)
-        last_free = samples[0]
+        clear = []
         min_clear = np.inf
         collided, n_collisions, blocked = False, 0, False
         for k, pose in enumerate(samples):
@@ -122,10 +125,30 @@ class RoverBody:
             if d <= 0.0:
                 collided, n_collisions = True, n_collisions + 1
                 break
-            last_free = pose
-        driven = _length(samples[: samples.index(last_free) + 1])
+            clear.append(d)
+        stop = len(clear) - 1
+        if collided:
+            # The bumper halts the rover: it backs up along its motion to STOP_MARGIN_M from
+            # what it touched (or to where it started), so that it can turn away next step.
+            while stop > 0 and clear[stop] < STOP_MARGIN_M:
+                stop -= 1
+        last_free = samples[max(stop, 0)]
+        driven = _length(samples[: max(stop, 0) + 1])
         return MotionResult(last_free, collided, n_collisions, float(min_clear), driven,
                             driven / total if total > 0 else 1.0, blocked)
+
+
+def clearance(body: fcl.CollisionObject, scene: fcl.CollisionObject) -> float:
+    """Distance between two FCL objects, or -1 when they touch.
+
+    FCL's distance query alone is not a collision test: for some shape pairs it returns a
+    tiny positive number on contact, so contact is decided by its collision query.
+    """
+    data = fcl.CollisionData(request=fcl.CollisionRequest())
+    if fcl.collide(body, scene, data.request, data.result):
+        return -1.0
+    return max(float(fcl.distance(body, scene, fcl.DistanceRequest(), fcl.DistanceResult())),
+               0.0)
 
 
 def _wrap(a: float) -> float:

@@ -172,6 +172,10 @@ class PlannerConfig:
     """Candidates (best gain first) tried with OMPL before giving up on a step."""
     ompl_max_checks: int = 3000
     """State-validity checks one OMPL query may spend (a count, not a time, for determinism)."""
+    known_ground_only: bool = True
+    """Rover: drive only where the map has ground under the wheels (observed or predicted),
+    except within a body length of where it stands; the mast camera cannot see the ground
+    next to the rover, and unknown is not free."""
     ground_cell_m: float = 0.5
     """Cell of the ground-height grid the collision model derives from the map."""
     obstacle_voxel_m: float = 0.15
