@@ -9,14 +9,16 @@ from scipy.spatial import cKDTree
 class CoverageEvaluator:
     """Incremental coverage of ground-truth surface samples by the observed surface S_t.
 
-    S_t only grows and the mapper appends new voxels at the end, so each update tests only the
-    points added since the last one against the samples not yet covered.
+    S_t only grows and the mapper appends new voxels at the end, so each update looks up only
+    the points added since the last one, in a k-d tree of the samples built once: the cost of
+    a step follows what the step added, not the size of the scene.
     """
 
     def __init__(self, truth_samples: np.ndarray, tau_m: float) -> None:
         self.samples = np.asarray(truth_samples, dtype=np.float32)
         self.tau_m = tau_m
         self.covered = np.zeros(len(self.samples), dtype=bool)
+        self._tree = cKDTree(self.samples) if len(self.samples) else None
         self._n_seen = 0
 
     def update(self, surface_xyz: np.ndarray) -> float:
@@ -24,12 +26,12 @@ class CoverageEvaluator:
         if len(surface_xyz) < self._n_seen:  # not an extension of the last S_t: start over
             self.covered[:] = False
             self._n_seen = 0
-        new = surface_xyz[self._n_seen:]
+        new = np.asarray(surface_xyz[self._n_seen:], dtype=np.float64)
         self._n_seen = len(surface_xyz)
-        todo = np.flatnonzero(~self.covered)
-        if len(new) and len(todo):
-            d, _ = cKDTree(new).query(self.samples[todo], distance_upper_bound=self.tau_m)
-            self.covered[todo[d <= self.tau_m]] = True
+        if len(new) and self._tree is not None:
+            hits = self._tree.query_ball_point(new, r=self.tau_m, return_sorted=False)
+            idx = np.fromiter((i for h in hits for i in h), dtype=np.int64)
+            self.covered[idx] = True
         return self.fraction
 
     @property

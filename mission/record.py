@@ -51,7 +51,11 @@ class MissionRecord:
             "collisions": int(sum(e.collided for e in self.executions)),
             "min_clearance_m": float(min((e.min_clearance_m for e in self.executions),
                                          default=float("nan"))),
+            "untraversable_stops": int(sum(e.untraversable for e in self.executions)),
+            "min_clearance_per_step_m": [e.min_clearance_m for e in self.executions],
             "path_length_m": float(sum(e.path_length_m for e in self.executions)),
+            "final_pose_error_m": (self.executions[-1].pose_error_m if self.executions
+                                   else 0.0),
             "median_stage_s": med,
             "median_transport_s": float(np.median(transport)) if len(transport) else 0.0,
             "median_step_s": float(np.median(self.step_wall_s)) if self.step_wall_s else 0.0,

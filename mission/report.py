@@ -19,15 +19,21 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path) -> dict:
     """Write every output file of a run into ``out``; returns the metrics."""
     out.mkdir(parents=True, exist_ok=True)
     metrics = record.metrics()
-    metrics.update(scene=cfg.scene.name, start=cfg.start, seed=cfg.seed,
+    metrics.update(scene=cfg.scene.name, platform=cfg.platform, start=cfg.start, seed=cfg.seed,
                    condition=cfg.condition, d_scene_m=cfg.scene.d_scene_m,
                    tau_m=cfg.eval.tau_frac * cfg.scene.d_scene_m)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     with open(out / "coverage.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["step", "coverage"])
+        # One row per pose t; the motion columns describe the motion that led to pose t.
+        w.writerow(["step", "coverage", "collided", "untraversable", "min_clearance_m",
+                    "path_length_m", "pose_error_m"])
         for t, c in enumerate(record.coverage):
-            w.writerow([t, repr(c)])
+            e = record.executions[t - 1] if 0 < t <= len(record.executions) else None
+            motion = ([int(e.collided), int(e.untraversable), repr(e.min_clearance_m),
+                       repr(e.path_length_m), repr(e.pose_error_m)] if e else ["", "", "", "",
+                                                                               ""])
+            w.writerow([t, repr(c), *motion])
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(range(len(record.coverage)), record.coverage, lw=2)

@@ -37,14 +37,13 @@ class CatalogEntry:
     """'procedural' or 'mesh' (a file shipped with pybullet_data)."""
 
 
-def _pybullet_mesh(filename: str, up_axis: str) -> Callable[[], Scene]:
+def _pybullet_mesh(name: str, filename: str, up_axis: str) -> Callable[[], Scene]:
     def build() -> Scene:
         import pybullet_data
 
         from rover_sim.mesh_scene import load_mesh_scene
         path = Path(pybullet_data.getDataPath()) / filename
-        return load_mesh_scene(path, up_axis=up_axis, scale=1.0, region_m=40.0,
-                               name=Path(filename).stem)
+        return load_mesh_scene(path, up_axis=up_axis, scale=1.0, region_m=40.0, name=name)
     return build
 
 
@@ -56,8 +55,8 @@ SCENES: dict[str, CatalogEntry] = {
     "lava_tube": CatalogEntry(suite.build_lava_tube, "procedural"),
     "outpost": CatalogEntry(suite.build_outpost, "procedural"),
     "ruins": CatalogEntry(suite.build_ruins, "procedural"),
-    "monastery": CatalogEntry(_pybullet_mesh("samurai_monastry.obj", "y"), "mesh"),
-    "pb_terrain": CatalogEntry(_pybullet_mesh("terrain.obj", "z"), "mesh"),
+    "monastery": CatalogEntry(_pybullet_mesh("monastery", "samurai_monastry.obj", "y"), "mesh"),
+    "pb_terrain": CatalogEntry(_pybullet_mesh("pb_terrain", "terrain.obj", "z"), "mesh"),
 }
 
 #: The evaluation suite: the procedural scenes every study runs on by default.

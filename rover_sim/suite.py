@@ -163,7 +163,8 @@ def build_arch_field(seed: int = 7) -> Scene:
         cx, cy = rng.uniform(-20, 20, 2)
         amp, sig = rng.uniform(-0.6, 0.6), rng.uniform(3.0, 6.0)
         Z += amp * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * sig**2))
-    scene = Scene("arch_field", xs, ys, Z, [], (0, 0, 0, 0, 0, 0))
+    scene = Scene("arch_field", xs, ys, Z, [], (0, 0, 0, 0, 0, 0),
+                  description="rolling ground, rocks, a natural arch, a hoodoo, a mesa")
     h = scene.height_at
 
     objects: list[trimesh.Trimesh] = []

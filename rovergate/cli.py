@@ -25,6 +25,7 @@ commands:
   mapper    start the mapper process alone
   gate      start the gate process alone
   planner   start the planner process alone
+  scenes    list the scenes with their sizes and starts (--render DIR: a picture of each)
 
 `rovergate COMMAND --help` lists the flags."""
 
@@ -54,6 +55,18 @@ COMMANDS: dict[str, Callable[[MissionConfig], int]] = {
     "run": _run, **{n: _module_main(n) for n in ("sim", "mapper", "gate", "planner")}}
 
 
+def _aliases(args: list[str]) -> list[str]:
+    """``--scene X`` is short for ``--scene.name X`` (as the docs write it)."""
+    out = []
+    for a in args:
+        if a == "--scene":
+            a = "--scene.name"
+        elif a.startswith("--scene="):
+            a = "--scene.name=" + a.split("=", 1)[1]
+        out.append(a)
+    return out
+
+
 def parse(argv: list[str]) -> tuple[str, MissionConfig]:
     """Split ``argv`` into the command and its resolved config."""
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
@@ -61,7 +74,7 @@ def parse(argv: list[str]) -> tuple[str, MissionConfig]:
             print(f"error: unknown command {argv[0]!r}", file=sys.stderr)
         print(USAGE, file=sys.stderr)
         raise SystemExit(0 if argv and argv[0] in ("-h", "--help") else 2)
-    command, rest = argv[0], list(argv[1:])
+    command, rest = argv[0], _aliases(list(argv[1:]))
     default = MissionConfig()
     if "--config" in rest:
         i = rest.index("--config")
@@ -80,7 +93,11 @@ def _interrupt(signum, frame) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    command, cfg = parse(sys.argv[1:] if argv is None else argv)
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "scenes":
+        from rover_sim.overview import main as scenes_main
+        raise SystemExit(scenes_main(argv[1:]))
+    command, cfg = parse(argv)
     # Ctrl-C and SIGTERM both mean: stop cleanly at the next wait (rovergate.node.STOP).
     # Installed explicitly, because a process started in the background may inherit an
     # ignored SIGINT.

@@ -1,0 +1,109 @@
+"""`rovergate scenes`: list the scenes with their sizes and starts, and draw each of them.
+
+The picture of a scene has two panels: a top-down map of its true surface coloured by height
+with the box of interest and the five starts (arrows: the heading), and an oblique view
+rendered by pybullet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pybullet as pb
+
+from rover_sim.catalog import SCENES, load_scene
+from rover_sim.scene import Scene
+from rovergate.config import SceneConfig
+
+USAGE = "rovergate scenes [NAME_OR_MESH ...] [--up-axis A] [--scale S] [--render DIR]"
+
+
+def describe(scene: Scene, kind: str) -> list[str]:
+    b = scene.bounds_m
+    size = f"{b[3] - b[0]:.1f} x {b[4] - b[1]:.1f} x {b[5] - b[2]:.1f} m"
+    lines = [f"{scene.name:<12} {kind:<10} {size:<24} d_scene {scene.d_scene_m:6.2f} m   "
+             f"{scene.description}"]
+    starts = "  ".join(f"{k}=({x:.1f}, {y:.1f}, {np.degrees(t):.0f}°)"
+                       for k, (x, y, t) in scene.starts.items())
+    lines.append(f"{'':<12} starts (x, y, heading): {starts}")
+    return lines
+
+
+def oblique_view(scene: Scene, width: int = 640, height: int = 400) -> np.ndarray:
+    """(H, W, 3) uint8 RGB view of the scene from above one corner of its box of interest."""
+    cid = pb.connect(pb.DIRECT)
+    try:
+        for mesh, rgba in scene.visual_meshes:
+            if len(mesh.faces):
+                vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
+                                           indices=mesh.faces.ravel().tolist(), rgbaColor=rgba,
+                                           physicsClientId=cid)
+                pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=cid)
+        b = np.array(scene.bounds_m)
+        centre = (b[:3] + b[3:]) / 2
+        eye = np.array([b[0], b[1], b[5]]) + np.array([-0.3, -0.3, 0.6]) * (b[3] - b[0])
+        view = pb.computeViewMatrix(eye.tolist(), centre.tolist(), [0, 0, 1],
+                                    physicsClientId=cid)
+        proj = pb.computeProjectionMatrixFOV(50, width / height, 0.5, 400, physicsClientId=cid)
+        rgb = pb.getCameraImage(width, height, view, proj, renderer=pb.ER_TINY_RENDERER,
+                                lightDirection=[-1, -0.5, 2], physicsClientId=cid)[2]
+        return np.asarray(rgb, dtype=np.uint8).reshape(height, width, 4)[..., :3]
+    finally:
+        pb.disconnect(cid)
+
+
+def render_overview(scene: Scene, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    pts = scene.surface_samples(60_000, seed=0)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1, 1.3]})
+    order = np.argsort(pts[:, 2])
+    sc = ax.scatter(pts[order, 0], pts[order, 1], c=pts[order, 2], s=0.4, cmap="terrain")
+    fig.colorbar(sc, ax=ax, label="z (m)", shrink=0.8)
+    for name, (x, y, t) in scene.starts.items():
+        ax.annotate("", xy=(x + 1.5 * np.cos(t), y + 1.5 * np.sin(t)), xytext=(x, y),
+                    arrowprops={"arrowstyle": "->", "color": "crimson", "lw": 2})
+        ax.plot(x, y, "o", color="crimson", ms=6)
+        ax.text(x + 0.4, y + 0.4, name, color="black", fontsize=12, weight="bold")
+    b = scene.bounds_m
+    ax.set(xlim=(b[0], b[3]), ylim=(b[1], b[4]), aspect="equal", xlabel="x (m)",
+           ylabel="y (m)", title=f"{scene.name}: surface and starts (d_scene "
+                                 f"{scene.d_scene_m:.2f} m)")
+    ax2.imshow(oblique_view(scene))
+    ax2.set_axis_off()
+    ax2.set_title(scene.description)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="rovergate scenes", usage=USAGE,
+                                     description="List the scenes (or the named ones and mesh "
+                                                 "files), with sizes and starts.")
+    parser.add_argument("names", nargs="*", help="scene names or mesh files (default: all)")
+    parser.add_argument("--up-axis", default="z", help="mesh files: their up axis")
+    parser.add_argument("--scale", type=float, default=1.0, help="mesh files: metres per unit")
+    parser.add_argument("--render", type=Path, metavar="DIR",
+                        help="write DIR/<scene>.png for each scene")
+    args = parser.parse_args(argv)
+    names = args.names or list(SCENES)
+    if args.render:
+        args.render.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        scene = load_scene(SceneConfig(name=name, up_axis=args.up_axis, scale=args.scale))
+        kind = SCENES[name].kind if name in SCENES else "mesh file"
+        print("\n".join(describe(scene, kind)), flush=True)
+        if args.render:
+            out = args.render / f"{scene.name}.png"
+            render_overview(scene, out)
+            print(f"{'':<12} picture: {out}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
