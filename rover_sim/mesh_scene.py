@@ -46,6 +46,7 @@ def read_mesh(path: Path, up_axis: str, scale: float) -> trimesh.Trimesh:
             f"error: scene file {path} does not exist; pass a mesh file (OBJ, "
             "PLY, STL, GLB) or a scene name from `rovergate scenes`"
         )
+    up = _up_transform(up_axis)
     if not scale > 0:
         raise SystemExit(f"error: --scene.scale {scale} must be positive (metres per unit)")
     try:
@@ -62,19 +63,24 @@ def read_mesh(path: Path, up_axis: str, scale: float) -> trimesh.Trimesh:
     mesh = trimesh.Trimesh(
         np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), process=False
     )
-    mesh.apply_transform(_up_transform(up_axis))
+    mesh.apply_transform(up)
     mesh.apply_scale(scale)
     return mesh
 
 
 def lowest_surface(mesh: trimesh.Trimesh, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """(ny, nx) height of the lowest surface over each grid point (NaN where there is none)."""
+    """(ny, nx) height of the lowest upward-facing surface over each grid point (NaN where
+    there is none). Downward-facing faces (the underside of a slab or a roof) are ignored, so
+    a platform's ground is its top, not its bottom."""
+    up = mesh.submesh([np.flatnonzero(mesh.face_normals[:, 2] > 0.05)], append=True)
+    if len(up.faces) == 0:
+        return np.full((len(ys), len(xs)), np.nan)
     cid = pb.connect(pb.DIRECT)
     try:
         shape = pb.createCollisionShape(
             pb.GEOM_MESH,
-            vertices=mesh.vertices.tolist(),
-            indices=mesh.faces.ravel().tolist(),
+            vertices=up.vertices.tolist(),
+            indices=up.faces.ravel().tolist(),
             flags=pb.GEOM_FORCE_CONCAVE_TRIMESH,
             physicsClientId=cid,
         )

@@ -59,7 +59,7 @@ def render_overview(scene: Scene, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    pts = scene.surface_samples(60_000, seed=0)
+    pts = scene.surface_samples(25_000, seed=0)
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1, 1.3]})
     order = np.argsort(pts[:, 2])
     sc = ax.scatter(pts[order, 0], pts[order, 1], c=pts[order, 2], s=0.4, cmap="terrain")
@@ -77,7 +77,7 @@ def render_overview(scene: Scene, path: Path) -> None:
     ax2.set_axis_off()
     ax2.set_title(scene.description)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=75)
     plt.close(fig)
 
 
