@@ -17,10 +17,12 @@ from mission.report import write_report
 from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig, save_config, to_dict
 from rovergate.logs import init_logging
+from rovergate.platform import check_platform
 
 
 def check_runnable(cfg: MissionConfig) -> None:
     """Refuse, before anything starts, a mission that cannot run as configured."""
+    check_platform(cfg.platform)
     condition = get_condition(cfg.condition)
     if condition.needs_prediction and not has_learned_model():
         raise SystemExit(f"error: condition {cfg.condition!r} cannot run yet: {NO_MODEL_REASON}. "

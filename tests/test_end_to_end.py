@@ -154,3 +154,29 @@ def test_bad_flags_and_files_get_one_line(tmp_path: Path):
     bad.write_text('{"stepz": 3}')
     r = run_cli("run", "--config", str(bad))
     assert r.returncode != 0 and "unknown key 'stepz'" in r.stderr
+
+
+def test_degraded_flyer_mission_is_the_same_in_processes_and_recorded(tmp_path: Path):
+    """A flyer with every degradation on, in a new scene: the process set and the in-process
+    loop agree to the last digit, and the settings are in the run's config."""
+    flags = ["--steps", "5", "--scene", "outpost", "--platform", "flyer", "--start", "c",
+             "--sensing.noise-frac", "0.01", "--sensing.dropout-blob-frac", "0.05",
+             "--sensing.dropout-pixel-prob", "0.01", "--sensing.grazing-max-deg", "80",
+             "--sensing.drift-xy-m", "0.03", "--sensing.drift-yaw-deg", "0.5"]
+    procs = run_cli("run", *flags, "--out", str(tmp_path / "p"))
+    assert procs.returncode == 0, procs.stderr[-3000:]
+    inproc = run_cli("run", *flags, "--in-process", "--out", str(tmp_path / "i"))
+    assert inproc.returncode == 0, inproc.stderr[-3000:]
+    assert (tmp_path / "p" / "coverage.csv").read_text() == \
+        (tmp_path / "i" / "coverage.csv").read_text()
+    cfg = json.loads((tmp_path / "p" / "config.json").read_text())
+    assert cfg["platform"] == "flyer" and cfg["scene"]["name"] == "outpost"
+    assert cfg["sensing"]["noise_frac"] == 0.01 and cfg["sensing"]["drift_xy_m"] == 0.03
+    m = json.loads((tmp_path / "p" / "metrics.json").read_text())
+    assert m["final_pose_error_m"] > 0 and m["coverage"][-1] > m["coverage"][0]
+
+
+def test_unknown_platform_gets_one_line():
+    r = run_cli("run", "--platform", "boat", "--steps", "1", "--in-process")
+    assert r.returncode != 0 and "unknown platform 'boat'" in r.stderr
+    assert "Traceback" not in r.stderr
