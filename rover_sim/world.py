@@ -15,6 +15,7 @@ from rovergate.config import RoverConfig, SensorConfig
 from rovergate.types import CameraIntrinsics, matrix_to_quat
 
 NEAR_M = 0.05
+EYE_NUDGE_M = np.array([1.13e-4, 0.71e-4, 0.37e-4])
 
 
 class PyBulletWorld:
@@ -70,7 +71,10 @@ class PyBulletWorld:
     def render_depth(self, T_map_camera: np.ndarray) -> np.ndarray:
         """(H, W) float32 z-depth in metres from the optical frame pose; NaN without a return."""
         s = self.sensor
-        eye = T_map_camera[:3, 3]
+        # TinyRenderer never returns when a triangle's plane passes exactly through the eye
+        # (an axis-aligned face and an eye on the same round coordinate): move the eye by a
+        # tenth of a millimetre in an odd direction, which no scene lines up with.
+        eye = T_map_camera[:3, 3] + EYE_NUDGE_M
         forward, down = T_map_camera[:3, 2], T_map_camera[:3, 1]
         view = pb.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), (-down).tolist(),
                                     physicsClientId=self.client)

@@ -194,3 +194,22 @@ def test_coverage_update_matches_brute_force():
         ev.update(surface[:k])
     d = np.min(np.linalg.norm(samples[:, None, :] - surface[None, ::1, :], axis=2), axis=1)
     assert ev.fraction == pytest.approx(np.mean(d <= 0.3))
+
+
+def test_render_returns_when_the_eye_lies_in_a_face_plane():
+    """TinyRenderer hung when the eye sat exactly in the plane of an axis-aligned face (the
+    flyer at the lava tube's mouth, x = 0, looking along +y); run it in a child with a limit."""
+    import subprocess
+    import sys
+    code = ("import numpy as np\n"
+            "from rovergate.config import MissionConfig, SceneConfig\n"
+            "from rover_sim.catalog import resolve_scene\n"
+            "from rover_sim.sim import RoverSim\n"
+            "cfg = MissionConfig(scene=SceneConfig(name='lava_tube'), platform='flyer')\n"
+            "resolve_scene(cfg.scene)\n"
+            "sim = RoverSim(cfg)\n"
+            "s = list(sim.state); s[:2] = [0.0, 0.0]; s[3] = np.pi / 2; sim.state = tuple(s)\n"
+            "print(np.isfinite(sim.render(0).depth_m).mean())\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert float(r.stdout.strip().splitlines()[-1]) > 0.3
