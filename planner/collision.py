@@ -175,12 +175,14 @@ class FlyerCollisionModel:
         g = self.ground.ground_z(x, y)
         return g + self.cfg.min_altitude_m, g + self.cfg.max_altitude_m
 
-    def is_free(self, x: float, y: float, z: float) -> bool:
-        """No map point within the sphere (plus a margin), and inside the altitude band."""
+    def is_free(self, x: float, y: float, z: float, band: bool = True) -> bool:
+        """No map point within the sphere (plus a margin), and (``band``) inside the altitude
+        band."""
         self.checks += 1
-        lo, hi = self.altitude_band(x, y)
-        if not lo <= z <= hi:
-            return False
+        if band:
+            lo, hi = self.altitude_band(x, y)
+            if not lo <= z <= hi:
+                return False
         if self._tree is None:
             return True
         d, _ = self._tree.query((x, y, z), distance_upper_bound=self.reach)

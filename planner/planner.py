@@ -104,7 +104,7 @@ class GreedyPlanner(Planner):
             return PlanResult(self._to_path(step, path, model), int(gains[i]), attempts,
                               "best-feasible")
         turn = model.turn(model.current)
-        if model.is_free(turn):
+        if model.is_free_turn(turn):
             return PlanResult(self._to_path(step, [model.current, turn], model), 0, attempts,
                               "rotate")
         return PlanResult(PlanPath(step, [T_map_base]), 0, attempts, "stay")

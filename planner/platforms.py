@@ -21,6 +21,9 @@ from rovergate.types import Pose
 
 State = tuple[float, ...]
 
+#: The flyer may leave an invalid start within this radius (see FlyerModel.plan).
+ESCAPE_RADIUS_M = 1.0
+
 
 class MotionModel(abc.ABC):
     """One step's view of the platform (see the module docstring)."""
@@ -61,6 +64,10 @@ class MotionModel(abc.ABC):
     @abc.abstractmethod
     def turn(self, state: State) -> State:
         """The same place, looking elsewhere (the fallback when no candidate is feasible)."""
+
+    def is_free_turn(self, state: State) -> bool:
+        """Whether turning to ``state`` from the current one is free."""
+        return self.is_free(state)
 
     @staticmethod
     def length(states: list[State]) -> float:
@@ -152,7 +159,18 @@ class FlyerModel(MotionModel):
         box = self._box()
         if not all(box[i] <= start[i] <= box[i + 3] for i in range(3)):
             return None
-        path = plan_r3(start[:3], goal[:3], self.sphere.is_free, box, seed=seed,
+        # The altitude band follows a ground estimate that changes as the map grows, so the
+        # flyer may find itself outside it (or a new point may land near it): near its start
+        # it may move anywhere to leave such a spot; beyond, every state must be valid.
+        s0 = np.array(start[:3])
+
+        def valid(x: float, y: float, z: float) -> bool:
+            near = (x - s0[0]) ** 2 + (y - s0[1]) ** 2 + (z - s0[2]) ** 2 < ESCAPE_RADIUS_M**2
+            if near:
+                return True
+            return self.sphere.is_free(x, y, z)
+
+        path = plan_r3(start[:3], goal[:3], valid, box, seed=seed,
                        max_checks=self.cfg.planner.ompl_max_checks)
         if path is None:
             return None
@@ -166,6 +184,9 @@ class FlyerModel(MotionModel):
 
     def turn(self, s: State) -> State:
         return (*s[:3], s[3] + np.pi / 2, 0.0)
+
+    def is_free_turn(self, s: State) -> bool:
+        return True  # turning in place moves no part of the sphere
 
     @property
     def checks(self) -> int:
