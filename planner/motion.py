@@ -19,33 +19,26 @@ ou.setLogLevel(ou.LogLevel.LOG_NONE)
 SE2 = tuple[float, float, float]
 
 
-def plan_se2(start: SE2, goal: SE2, is_free: Callable[[float, float, float], bool],
-             bounds_xy: tuple[float, float, float, float], seed: int, max_checks: int,
-             resolution_m: float = 0.05) -> list[SE2] | None:
-    """A collision-free SE(2) path from ``start`` to ``goal`` (both included), or None."""
-    ou.RNG.setSeed(int(seed) % (2**31 - 1) + 1)  # before anything that draws an RNG seed
-    space = ob.SE2StateSpace()
-    bounds = ob.RealVectorBounds(2)
-    bounds.setLow(0, bounds_xy[0])
-    bounds.setLow(1, bounds_xy[1])
-    bounds.setHigh(0, bounds_xy[2])
-    bounds.setHigh(1, bounds_xy[3])
-    space.setBounds(bounds)
+def _rrt_connect(space, read: Callable, write: Callable, start, goal,
+                 is_free: Callable[..., bool], max_checks: int,
+                 resolution_m: float) -> list | None:
+    """RRT-Connect in ``space`` (bounds set), stopped after ``max_checks`` validity checks.
+
+    ``read(state)`` gives a tuple from an OMPL state, ``write(state, values)`` sets one.
+    """
     ss = og.SimpleSetup(space)
     checks = [0]
 
     def valid(state) -> bool:
         checks[0] += 1
-        return is_free(state.getX(), state.getY(), state.getYaw())
+        return is_free(*read(state))
 
     ss.setStateValidityChecker(valid)
     si = ss.getSpaceInformation()
     si.setStateValidityCheckingResolution(resolution_m / space.getMaximumExtent())
     s, g = space.allocState(), space.allocState()
-    for state, (x, y, yaw) in ((s, start), (g, goal)):
-        state.setX(x)
-        state.setY(y)
-        state.setYaw((yaw + np.pi) % (2 * np.pi) - np.pi)  # OMPL's SO(2) is [-pi, pi)
+    write(s, start)
+    write(g, goal)
     ss.setStartAndGoalStates(s, g)
     ss.setPlanner(og.RRTConnect(si))
     ptc = ob.PlannerTerminationCondition(lambda: checks[0] >= max_checks)
@@ -53,8 +46,33 @@ def plan_se2(start: SE2, goal: SE2, is_free: Callable[[float, float, float], boo
     if not ss.haveExactSolutionPath() or "Exact" not in str(status):
         return None
     ss.simplifySolution()
-    path = ss.getSolutionPath()
-    return [(p.getX(), p.getY(), p.getYaw()) for p in path.getStates()]
+    return [read(p) for p in ss.getSolutionPath().getStates()]
+
+
+def _seed(seed: int) -> None:
+    ou.RNG.setSeed(int(seed) % (2**31 - 1) + 1)  # before anything that draws an RNG seed
+
+
+def plan_se2(start: SE2, goal: SE2, is_free: Callable[[float, float, float], bool],
+             bounds_xy: tuple[float, float, float, float], seed: int, max_checks: int,
+             resolution_m: float = 0.05) -> list[SE2] | None:
+    """A collision-free SE(2) path from ``start`` to ``goal`` (both included), or None."""
+    _seed(seed)
+    space = ob.SE2StateSpace()
+    bounds = ob.RealVectorBounds(2)
+    bounds.setLow(0, bounds_xy[0])
+    bounds.setLow(1, bounds_xy[1])
+    bounds.setHigh(0, bounds_xy[2])
+    bounds.setHigh(1, bounds_xy[3])
+    space.setBounds(bounds)
+
+    def write(state, pose: SE2) -> None:
+        state.setX(pose[0])
+        state.setY(pose[1])
+        state.setYaw((pose[2] + np.pi) % (2 * np.pi) - np.pi)  # OMPL's SO(2) is [-pi, pi)
+
+    return _rrt_connect(space, lambda st: (st.getX(), st.getY(), st.getYaw()), write, start,
+                        goal, is_free, max_checks, resolution_m)
 
 
 def path_length(path: list[SE2]) -> float:
@@ -73,32 +91,17 @@ def plan_r3(start: XYZ, goal: XYZ, is_free: Callable[[float, float, float], bool
     The flyer's path: positions only; its view direction turns along the path (the planner
     interpolates it), which does not change what its sphere touches.
     """
-    ou.RNG.setSeed(int(seed) % (2**31 - 1) + 1)
+    _seed(seed)
     space = ob.RealVectorStateSpace(3)
     b = ob.RealVectorBounds(3)
     for i in range(3):
         b.setLow(i, bounds[i])
         b.setHigh(i, bounds[i + 3])
     space.setBounds(b)
-    ss = og.SimpleSetup(space)
-    checks = [0]
 
-    def valid(state) -> bool:
-        checks[0] += 1
-        return is_free(state[0], state[1], state[2])
-
-    ss.setStateValidityChecker(valid)
-    si = ss.getSpaceInformation()
-    si.setStateValidityCheckingResolution(resolution_m / space.getMaximumExtent())
-    s, g = space.allocState(), space.allocState()
-    for state, p in ((s, start), (g, goal)):
+    def write(state, p: XYZ) -> None:
         for i in range(3):
             state[i] = float(p[i])
-    ss.setStartAndGoalStates(s, g)
-    ss.setPlanner(og.RRTConnect(si))
-    ptc = ob.PlannerTerminationCondition(lambda: checks[0] >= max_checks)
-    status = ss.solve(ptc)
-    if not ss.haveExactSolutionPath() or "Exact" not in str(status):
-        return None
-    ss.simplifySolution()
-    return [(p[0], p[1], p[2]) for p in ss.getSolutionPath().getStates()]
+
+    return _rrt_connect(space, lambda st: (st[0], st[1], st[2]), write, start, goal, is_free,
+                        max_checks, resolution_m)
