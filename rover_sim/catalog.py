@@ -117,8 +117,10 @@ def resolve_scene(cfg_scene: SceneConfig) -> None:
 
 
 def start_candidates(scene: Scene, rover: RoverConfig | None = None,
-                     flyer: FlyerConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(xs, ys) grid and (ny, nx) bool grid of the poses fit for both platforms."""
+                     flyer: FlyerConfig | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (nx,) and (ny,) grid coordinates, and the (ny, nx) bool grid of the poses fit for
+    both platforms."""
     from rover_sim.flyer import FlyerBody
     from rover_sim.rover import RoverBody
     rover, flyer = rover or RoverConfig(), flyer or FlyerConfig()
