@@ -57,6 +57,7 @@ SCENES: dict[str, CatalogEntry] = {
     "ruins": CatalogEntry(suite.build_ruins, "procedural"),
     "monastery": CatalogEntry(_pybullet_mesh("monastery", "samurai_monastry.obj", "y"), "mesh"),
     "pb_terrain": CatalogEntry(_pybullet_mesh("pb_terrain", "terrain.obj", "z"), "mesh"),
+    "pb_heightmap": CatalogEntry(suite.build_pb_heightmap, "heightmap"),
 }
 
 #: The evaluation suite: the procedural scenes every study runs on by default.

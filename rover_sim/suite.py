@@ -426,3 +426,21 @@ def build_ruins(seed: int = 15) -> Scene:
     keep += [(-9.0, -8.0, 2.5), (-4.0, 9.0, 2.5)]
     _scatter_rocks(rng, scene, objects, 15, (0.2, 0.6), keep)
     return _finish(scene, objects, X, Y)
+
+
+def build_pb_heightmap(metres_per_pixel: float = 0.1, relief_m: float = 6.0) -> Scene:
+    """The `pybullet_data` heightmap `heightmaps/wm_height_out.png` (512 x 512, eroded
+    terrain from World Machine) as ground: 0.1 m a pixel (51.2 m across), 6 m of relief,
+    averaged onto the suite's 0.5 m cells; the box of interest is its central 30 m."""
+    import matplotlib.image
+    import pybullet_data
+    img = matplotlib.image.imread(f"{pybullet_data.getDataPath()}/heightmaps/wm_height_out.png")
+    k = int(round(TERRAIN_CELL_M / metres_per_pixel))
+    n = img.shape[0] // k
+    Z = img[: n * k, : n * k].reshape(n, k, n, k).mean(axis=(1, 3)).astype(np.float64)
+    Z = (Z - Z.mean()) * relief_m / max(float(np.ptp(Z)), 1e-9)
+    xs = (np.arange(n) - (n - 1) / 2) * TERRAIN_CELL_M
+    X, Y = np.meshgrid(xs, xs)
+    scene = Scene("pb_heightmap", xs, xs.copy(), Z, [], (0, 0, 0, 0, 0, 0),
+                  description="pybullet_data heightmap wm_height_out.png: eroded valleys")
+    return _finish(scene, [], X, Y)
