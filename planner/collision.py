@@ -106,8 +106,7 @@ class OccupancyCollisionModel:
         raw = self.raw_ground
         K = np.isfinite(raw).astype(np.float64)
         Zk = np.where(K > 0, raw, 0.0)
-        pad = lambda a: np.pad(a, 1)  # noqa: E731
-        Kp, Zp = pad(K), pad(Zk)
+        Kp, Zp = np.pad(K, 1), np.pad(Zk, 1)
         h, w = raw.shape
         offs = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
         M = np.zeros((h, w, 3, 3))

@@ -109,14 +109,9 @@ class RoverModel(MotionModel):
     def turn(self, s: State) -> State:
         return (s[0], s[1], s[2] + np.pi / 2)
 
-    @property
-    def checks(self) -> int:
-        return self.ground.checks
-
 
 class FlyerModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose) -> None:
-        self._T0 = T_map_base
         super().__init__(cfg, points, T_map_base)
         self.sphere = FlyerCollisionModel(points, cfg.flyer, self.ground)
 
@@ -187,10 +182,6 @@ class FlyerModel(MotionModel):
 
     def is_free_turn(self, s: State) -> bool:
         return True  # turning in place moves no part of the sphere
-
-    @property
-    def checks(self) -> int:
-        return self.sphere.checks
 
 
 def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose) -> MotionModel:

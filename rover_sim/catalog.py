@@ -109,12 +109,11 @@ def resolve_scene(cfg_scene: SceneConfig) -> None:
     """
     if cfg_scene.resolved:
         return
-    scene = load_scene(cfg_scene)
+    scene = load_scene(cfg_scene)  # its box of interest is the config's, where one is given
     if not any(cfg_scene.bounds_m):
         cfg_scene.bounds_m = tuple(float(v) for v in scene.bounds_m)
     if cfg_scene.d_scene_m <= 0:
-        lo, hi = np.array(cfg_scene.bounds_m[:3]), np.array(cfg_scene.bounds_m[3:])
-        cfg_scene.d_scene_m = float(np.linalg.norm(hi - lo))
+        cfg_scene.d_scene_m = scene.d_scene_m
 
 
 def start_candidates(scene: Scene, rover: RoverConfig | None = None,
