@@ -16,6 +16,7 @@ import pybullet as pb
 
 from rover_sim.catalog import SCENES, load_scene
 from rover_sim.scene import Scene
+from rover_sim.world import add_scene
 from rovergate.config import SceneConfig
 
 USAGE = "rovergate scenes [NAME_OR_MESH ...] [--up-axis A] [--scale S] [--render DIR]"
@@ -36,12 +37,7 @@ def oblique_view(scene: Scene, width: int = 640, height: int = 400) -> np.ndarra
     """(H, W, 3) uint8 RGB view of the scene from above one corner of its box of interest."""
     cid = pb.connect(pb.DIRECT)
     try:
-        for mesh, rgba in scene.visual_meshes:
-            if len(mesh.faces):
-                vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
-                                           indices=mesh.faces.ravel().tolist(), rgbaColor=rgba,
-                                           physicsClientId=cid)
-                pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=cid)
+        add_scene(cid, scene)
         b = np.array(scene.bounds_m)
         centre = (b[:3] + b[3:]) / 2
         eye = np.array([b[0], b[1], b[5]]) + np.array([-0.3, -0.3, 0.6]) * (b[3] - b[0])

@@ -18,6 +18,16 @@ NEAR_M = 0.05
 EYE_NUDGE_M = np.array([1.13e-4, 0.71e-4, 0.37e-4])
 
 
+def add_scene(client: int, scene: Scene) -> None:
+    """Put the scene's true geometry into a pybullet client, for rendering."""
+    for mesh, rgba in scene.visual_meshes:
+        if len(mesh.faces):
+            vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
+                                       indices=mesh.faces.ravel().tolist(), rgbaColor=rgba,
+                                       physicsClientId=client)
+            pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=client)
+
+
 class PyBulletWorld:
     """Owns one pybullet client with the scene and the rover in it."""
 
@@ -27,13 +37,7 @@ class PyBulletWorld:
         self.client = pb.connect(pb.DIRECT)
         c = self.client
         self.rover_id = self.mast_id = -1
-        for mesh, rgba in scene.visual_meshes:
-            if len(mesh.faces) == 0:
-                continue
-            vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
-                                       indices=mesh.faces.ravel().tolist(), rgbaColor=rgba,
-                                       physicsClientId=c)
-            pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=c)
+        add_scene(c, scene)
         self.far_m = sensor.max_range_m * 1.5
         self.intrinsics = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
                                                     sensor.vfov_deg)
