@@ -56,6 +56,14 @@ class RoverBody:
         h = rover.body_top_m - rover.clearance_m
         self._body = fcl.CollisionObject(fcl.Box(rover.length_m, rover.width_m, h))
         self._body_offset = np.array([0.0, 0.0, rover.clearance_m + h / 2])
+        # Terrain checks: 3 x 5 points under the body (body frame), the wheels at its corners,
+        # and the least-squares fit of a plane to the wheels' heights, computed once.
+        self._under_u, self._under_v = np.meshgrid(
+            np.array([-1.0, -0.5, 0.0, 0.5, 1.0]) * rover.length_m / 2,
+            np.array([-1.0, 0.0, 1.0]) * rover.width_m / 2)
+        wheels = np.c_[np.ones(4), self._under_u[[0, 0, 2, 2], [0, 4, 0, 4]],
+                       self._under_v[[0, 0, 2, 2], [0, 4, 0, 4]]]
+        self._wheel_fit = np.linalg.pinv(wheels)
 
     def base_pose(self, x: float, y: float, yaw: float) -> np.ndarray:
         """(4, 4) base pose on the terrain: wheels on the ground, roll and pitch from them."""
@@ -81,15 +89,9 @@ class RoverBody:
         largest distance between the ground and that plane at 3 x 5 points under the body.
         """
         c, s = np.cos(yaw), np.sin(yaw)
-        u = np.array([-1.0, -0.5, 0.0, 0.5, 1.0]) * self.cfg.length_m / 2
-        v = np.array([-1.0, 0.0, 1.0]) * self.cfg.width_m / 2
-        U, V = np.meshgrid(u, v)
-        X, Y = x + c * U - s * V, y + s * U + c * V
-        Z = self.scene.height_at(X, Y)
-        corners = Z[[0, 0, 2, 2], [0, 4, 0, 4]]
-        Uc, Vc = U[[0, 0, 2, 2], [0, 4, 0, 4]], V[[0, 0, 2, 2], [0, 4, 0, 4]]
-        A = np.c_[np.ones(4), Uc, Vc]
-        coef = np.linalg.lstsq(A, corners, rcond=None)[0]
+        U, V = self._under_u, self._under_v
+        Z = self.scene.height_at(x + c * U - s * V, y + s * U + c * V)
+        coef = self._wheel_fit @ Z[[0, 0, 2, 2], [0, 4, 0, 4]]
         plane = coef[0] + coef[1] * U + coef[2] * V
         slope = float(np.degrees(np.arctan(np.hypot(coef[1], coef[2]))))
         return slope, float(np.abs(Z - plane).max())
