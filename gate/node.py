@@ -7,7 +7,6 @@ from typing import Any
 
 from gate.conditions import get_condition
 from gate.gate import Gate
-from mapper.mapper import NO_MODEL_REASON, has_learned_model
 from rovergate.config import MissionConfig
 from rovergate.logs import init_logging
 from rovergate.node import Input, ModuleNode
@@ -17,8 +16,6 @@ from rovergate.types import MapperOutput, xyz
 def main(cfg: MissionConfig) -> int:
     log = init_logging("gate")
     condition = get_condition(cfg.condition)
-    if condition.needs_prediction and not has_learned_model():
-        raise SystemExit(f"error: condition {cfg.condition!r} cannot run: {NO_MODEL_REASON}")
     node = ModuleNode("gate", cfg.session,
                       inputs={"surface": Input("surface"), "predicted": Input("predicted"),
                               "pose": Input("pose"), "info": Input("camera_info")},

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from mapper.grid import GridSpec, OccupancyGrid
 from mapper.integrate import VoxelSurface, backproject
-from rovergate.config import MapperConfig
+from mapper.model import Checkpoint, OccupancyPredictor, load_checkpoint
+from rovergate.config import MapperConfig, MissionConfig
 from rovergate.types import (
     PREDICTED_DTYPE,
     SURFACE_DTYPE,
@@ -14,29 +16,67 @@ from rovergate.types import (
     make_cloud,
 )
 
-#: Why learned conditions cannot run yet; said at run time by every command that needs it.
-NO_MODEL_REASON = ("the learned occupancy model is not shipped yet (it is issue 4's work): the "
-                   "mapper publishes an empty prediction")
+PREDICTION_MODES = ("auto", "on", "off")
 
 
-def has_learned_model() -> bool:
-    """Whether a trained occupancy model ships with this version."""
-    return False
+def wants_prediction(cfg: MissionConfig) -> bool:
+    """Whether the mission's mapper runs the learned model (``--mapper.prediction``)."""
+    from gate.conditions import get_condition
+    mode = cfg.mapper.prediction
+    if mode not in PREDICTION_MODES:
+        raise SystemExit(f"error: --mapper.prediction {mode!r} is not a mode; choose one of: "
+                         f"{', '.join(PREDICTION_MODES)}")
+    if mode == "auto":
+        return get_condition(cfg.condition).needs_prediction
+    if mode == "off" and get_condition(cfg.condition).needs_prediction:
+        raise SystemExit(f"error: condition {cfg.condition!r} needs the learned prediction, "
+                         "but --mapper.prediction is off; use auto or on")
+    return mode == "on"
+
+
+def mission_checkpoint(cfg: MissionConfig) -> Checkpoint | None:
+    """The model a mission's mapper runs (None: it publishes no prediction). A missing or
+    corrupt checkpoint is a one-line SystemExit."""
+    if not wants_prediction(cfg):
+        return None
+    return load_checkpoint(cfg.mapper.checkpoint or None)
 
 
 class Mapper:
-    """Integrates each depth frame into S_t and publishes the learned prediction.
+    """Integrates each depth frame into S_t and, with a checkpoint, predicts occupancy.
 
-    Until the occupancy model lands, the prediction is an empty cloud (never a fake one).
+    With a checkpoint, each frame also goes into the occupied / free / unknown grid over the
+    box of interest ``bounds_m``, the model predicts the window around the camera, and the
+    published prediction is every voxel centre at probability >= 0.5 with no return in it yet.
+    Without one, the prediction is an empty cloud (never a fake one).
     """
 
-    def __init__(self, cfg: MapperConfig) -> None:
+    def __init__(self, cfg: MapperConfig, bounds_m: tuple[float, ...] | None = None,
+                 checkpoint: Checkpoint | None = None) -> None:
         self.cfg = cfg
         self.surface = VoxelSurface(cfg.voxel_m)
+        self.grid: OccupancyGrid | None = None
+        self.predictor: OccupancyPredictor | None = None
+        if checkpoint is not None:
+            if bounds_m is None or not any(bounds_m):
+                raise ValueError("the learned prediction needs the box of interest")
+            self.grid = OccupancyGrid(GridSpec.around(bounds_m, checkpoint.window.voxel_m))
+            self.predictor = OccupancyPredictor(checkpoint, self.grid)
+
+    @classmethod
+    def for_mission(cls, cfg: MissionConfig) -> Mapper:
+        return cls(cfg.mapper, cfg.scene.bounds_m, mission_checkpoint(cfg))
 
     def step(self, frame: SensorFrame) -> MapperOutput:
-        pts = backproject(frame.depth_m, frame.intrinsics, frame.T_map_camera.matrix())
+        T_cam = frame.T_map_camera.matrix()
+        pts = backproject(frame.depth_m, frame.intrinsics, T_cam)
         self.surface.integrate(pts)
         surface = make_cloud(self.surface.points, SURFACE_DTYPE, views=self.surface.views)
-        predicted = np.zeros(0, dtype=PREDICTED_DTYPE)
+        if self.predictor is None:
+            predicted = np.zeros(0, dtype=PREDICTED_DTYPE)
+        else:
+            self.grid.integrate(frame.depth_m, frame.intrinsics, T_cam)
+            self.predictor.update(T_cam[:3, 3])
+            p_xyz, prob = self.predictor.predicted()
+            predicted = make_cloud(p_xyz, PREDICTED_DTYPE, probability=prob)
         return MapperOutput(frame.step, surface, predicted)

@@ -14,7 +14,7 @@ from rovergate.types import SensorFrame
 
 def main(cfg: MissionConfig) -> int:
     log = init_logging("mapper")
-    mapper = Mapper(cfg.mapper)
+    mapper = Mapper.for_mission(cfg)
     node = ModuleNode("mapper", cfg.session,
                       inputs={"depth": Input("depth"), "info": Input("camera_info"),
                               "pose": Input("pose"), "base": Input("base_pose")},

@@ -30,7 +30,7 @@ from rovergate.keys import MODULES, Keys
 from rovergate.messages import MessageError, encode
 from rovergate.node import STOP, cdr_encoding, check_and_decode
 from rovergate.session import free_loopback_port, open_session
-from rovergate.types import MissionStatus, xyz
+from rovergate.types import MissionStatus, Source, xyz
 
 log = logging.getLogger("rovergate.mission")
 
@@ -46,7 +46,8 @@ class MissionFailed(RuntimeError):
 class Hub:
     """The mission's Zenoh session, its module processes, and the step-indexed inbox."""
 
-    WATCHED = ("surface", "path", "execution", "timing", "base_pose")
+    WATCHED = ("surface", "path", "execution", "timing", "base_pose", "predicted",
+               "planner_map")
 
     def __init__(self, cfg: MissionConfig, out: Path) -> None:
         self.cfg = cfg
@@ -229,6 +230,16 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
                 report = hub.wait_message("execution", t - 1)
                 collisions += int(report.collided)
                 record.executions.append(report)
+            if t > 0:
+                predicted = hub.wait_message("predicted", t - 1)
+                planner_map = hub.wait_message("planner_map", t - 1)
+                kept = int((planner_map.points["source"] == Source.PREDICTED).sum())
+                record.predicted_points.append(len(predicted))
+                record.planner_predicted.append(kept)
+                # The map message has no count of what the gate withheld; under the gate,
+                # what it withheld is what it did not pass on.
+                record.suppressed.append(len(predicted) - kept if cfg.condition == "gated"
+                                         else 0)
             surface = hub.wait_message("surface", t)
             base = hub.wait_message("base_pose", t)
             if t > 0:

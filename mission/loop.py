@@ -12,7 +12,7 @@ from mission.record import MissionRecord
 from planner.planner import make_planner
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
-from rovergate.types import xyz
+from rovergate.types import Source, xyz
 
 
 def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
@@ -21,7 +21,7 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
     t_start = time.perf_counter()
     sim = RoverSim(cfg)
     try:
-        mapper = Mapper(cfg.mapper)
+        mapper = Mapper.for_mission(cfg)
         reference = sim.truth_occupancy() if get_condition(cfg.condition).needs_truth else None
         gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
         planner = make_planner(cfg)
@@ -52,6 +52,9 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
                 break
             occupancy = timed("gate", gate.step, mapped, frame.T_map_camera, frame.intrinsics)
             record.suppressed.append(occupancy.suppressed)
+            record.predicted_points.append(len(mapped.predicted))
+            record.planner_predicted.append(
+                int((occupancy.points["source"] == Source.PREDICTED).sum()))
             path = timed("plan", planner.plan, t, occupancy, frame.T_map_base).path
             record.paths.append(path)
     finally:

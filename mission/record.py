@@ -25,6 +25,11 @@ class MissionRecord:
     step_wall_s: list[float] = field(default_factory=list)
     """Wall time of each step of the loop, as the mission clock saw it."""
     suppressed: list[int] = field(default_factory=list)
+    """Predicted points the gate withheld from the planner at each step 0..T-1."""
+    predicted_points: list[int] = field(default_factory=list)
+    """Size of the thresholded prediction O_hat_t at each step 0..T-1."""
+    planner_predicted: list[int] = field(default_factory=list)
+    """Predicted points in the planner-facing map at each step 0..T-1."""
     surface_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     wall_s: float = 0.0
     dropped_messages: int = 0
@@ -62,4 +67,7 @@ class MissionRecord:
             "wall_s": self.wall_s,
             "dropped_messages": self.dropped_messages,
             "observed_points": int(len(self.surface_xyz)),
+            "predicted_points_per_step": self.predicted_points,
+            "planner_predicted_per_step": self.planner_predicted,
+            "suppressed_per_step": self.suppressed,
         }

@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from gate.conditions import get_condition
-from mapper.mapper import NO_MODEL_REASON, has_learned_model
+from mapper.mapper import mission_checkpoint
 from mission.hub import MissionFailed, run_processes
 from mission.loop import run_in_process
 from mission.report import write_report
@@ -23,10 +23,8 @@ from rovergate.platform import check_platform
 def check_runnable(cfg: MissionConfig) -> None:
     """Refuse, before anything starts, a mission that cannot run as configured."""
     check_platform(cfg.platform)
-    condition = get_condition(cfg.condition)
-    if condition.needs_prediction and not has_learned_model():
-        raise SystemExit(f"error: condition {cfg.condition!r} cannot run yet: {NO_MODEL_REASON}. "
-                         "Conditions that run today: obs, truth")
+    get_condition(cfg.condition)
+    mission_checkpoint(cfg)  # a missing or corrupt checkpoint stops the mission here
     if cfg.steps < 1:
         raise SystemExit(f"error: --steps must be at least 1, got {cfg.steps}")
 

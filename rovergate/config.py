@@ -138,6 +138,10 @@ class MapperConfig:
 
     voxel_m: float = 0.15
     """Voxel edge of the observed surface: one point is kept per voxel."""
+    prediction: str = "auto"
+    """Run the learned occupancy model: auto (when the condition uses it), on, or off."""
+    checkpoint: str = ""
+    """Occupancy model weights. Empty: the checkpoint shipped in the package."""
 
 
 @dataclass

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import resource
 import queue
 import threading
 import time
@@ -223,7 +224,9 @@ class ModuleNode:
         return 0 if reason in ("done", "aborted", "interrupted") else 1
 
     def close(self) -> None:
-        """Undeclare everything and close the session."""
+        """Undeclare everything and close the session; logs the process's peak memory."""
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+        self.log.info("peak resident memory %.0f MB", peak_mb)
         if self._token is not None:
             self._token.undeclare()
         for q in self._queryables:

@@ -128,11 +128,37 @@ def test_a_module_that_dies_stops_the_mission_with_its_name(tmp_path: Path):
     assert left.stdout.strip() == "", "modules left running"
 
 
-def test_conditions_that_need_the_model_refuse_to_start(tmp_path: Path):
-    for condition in ("learned", "gated", "learned-fp", "learned+fn"):
-        r = run_cli("run", "--condition", condition, "--steps", "2", "--out", str(tmp_path))
-        assert r.returncode != 0
-        assert "not shipped yet" in r.stderr and "obs, truth" in r.stderr
+def test_learned_condition_feeds_the_prediction_to_the_planner(tmp_path: Path):
+    """The process set and the in-process loop, in the learned condition: the mapper's
+    prediction is non-empty, it enters the planner-facing map, and both modes agree."""
+    procs = run_cli("run", "--condition", "learned", "--steps", "3", "--out",
+                    str(tmp_path / "p"))
+    assert procs.returncode == 0, procs.stderr[-3000:]
+    inproc = run_cli("run", "--condition", "learned", "--steps", "3", "--in-process", "--out",
+                     str(tmp_path / "i"))
+    assert inproc.returncode == 0, inproc.stderr[-3000:]
+    p = json.loads((tmp_path / "p" / "metrics.json").read_text())
+    i = json.loads((tmp_path / "i" / "metrics.json").read_text())
+    assert len(p["predicted_points_per_step"]) == 3
+    assert min(p["predicted_points_per_step"]) > 100
+    # Equation 2, learned: the planner receives every predicted point beside S_t.
+    assert p["planner_predicted_per_step"] == p["predicted_points_per_step"]
+    for key in ("predicted_points_per_step", "planner_predicted_per_step", "path_length_m"):
+        assert p[key] == i[key], key
+    assert (tmp_path / "p" / "coverage.csv").read_text() == \
+        (tmp_path / "i" / "coverage.csv").read_text()
+
+
+def test_gated_condition_withholds_part_of_the_prediction(tmp_path: Path):
+    r = run_cli("run", "--condition", "gated", "--steps", "4", "--in-process", "--out",
+                str(tmp_path))
+    assert r.returncode == 0, r.stderr[-3000:]
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    pred, kept, held = (m[k] for k in ("predicted_points_per_step",
+                                       "planner_predicted_per_step", "suppressed_per_step"))
+    assert all(k + h == n for n, k, h in zip(pred, kept, held, strict=True))
+    assert held[0] == 0  # one frustum is fewer than K = 2
+    assert sum(held) > 0
 
 
 def test_truth_condition_runs_and_is_reproducible(tmp_path: Path):

@@ -42,7 +42,8 @@ def test_voxel_first_points_keeps_order():
     assert voxel_first_points(pts, 1.0).tolist() == pts[:2].tolist()
 
 
-def test_mapper_step_publishes_an_empty_prediction_until_the_model_lands():
+def test_mapper_without_a_model_publishes_an_empty_prediction():
+    """Conditions that do not use the prediction (obs, truth) do not run the model."""
     k = CameraIntrinsics.from_fov(8, 6, 45.0)
     T = Pose.from_xyz_yaw(0, 0, 1, 0)
     frame = SensorFrame(0, np.full((6, 8), 2.0, np.float32), k, T, T)

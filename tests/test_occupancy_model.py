@@ -1,0 +1,204 @@
+"""The learned occupancy: its input grid, the network, the shipped checkpoint, training, and
+the evaluation's scoring."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from mapper.evaluate import Counts, heightmap_completion, score_maps
+from mapper.grid import FREE, OCCUPIED, GridSpec, OccupancyGrid
+from mapper.model import (
+    IN_CHANNELS,
+    OccupancyNet,
+    OccupancyPredictor,
+    WindowSpec,
+    crop,
+    encode,
+    load_checkpoint,
+    shipped_checkpoint,
+)
+from mapper.training import TrainConfig, gather_world, make_batch, masked_loss, train
+from rovergate.platform import R_BODY_OPTICAL
+from rovergate.types import CameraIntrinsics
+
+
+def _camera_looking_along_x(x: float, y: float, z: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R_BODY_OPTICAL
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def test_depth_marks_returns_occupied_the_way_there_free_and_nothing_behind():
+    spec = GridSpec((-2.0, -5.0, -5.0), 0.5, (30, 20, 20))
+    grid = OccupancyGrid(spec, ray_stride_px=1)
+    k = CameraIntrinsics.from_fov(16, 12, 20.0)
+    depth = np.full((12, 16), 6.0, dtype=np.float32)  # a wall at x = 6
+    depth[:, :8] = np.nan  # no return on the left half: no evidence there
+    grid.integrate(depth, k, _camera_looking_along_x(0.0, 0.0, 0.0))
+    wall = np.array([[6.0, -0.3, 0.0]])
+    before = np.array([[3.0, -0.3, 0.0], [1.0, -0.1, 0.0]])
+    behind = np.array([[8.0, -0.3, 0.0]])
+    left = np.array([[3.0, 0.5, 0.0]])  # y > 0 is the image's left half
+    ijk = lambda p: tuple(spec.index(p)[0][0])  # noqa: E731
+    assert grid.state[ijk(wall)] & OCCUPIED
+    assert all(grid.state[ijk(p[None])] == FREE for p in before)
+    assert grid.state[ijk(behind)] == 0 and grid.state[ijk(left)] == 0
+    assert grid.known(np.vstack([wall, before, behind, left])).tolist() == [
+        True, True, True, False, False]
+
+
+def test_crop_reads_outside_the_volume_as_fill():
+    v = np.arange(27, dtype=np.uint8).reshape(3, 3, 3)
+    c = crop(v, np.array([-1, 1, 0]), (2, 2, 2), fill=9)
+    assert c[0].tolist() == [[9, 9], [9, 9]]
+    assert c[1].tolist() == v[0, 1:3, 0:2].tolist()
+
+
+def test_forward_pass_on_a_known_input():
+    torch.manual_seed(0)
+    model = OccupancyNet().eval()
+    state = np.zeros((16, 16, 8), dtype=np.uint8)
+    state[:, :, 2] = OCCUPIED
+    x = torch.from_numpy(encode(state, below=4))[None]
+    assert x.shape == (1, IN_CHANNELS, 16, 16, 8)
+    assert x[0, 0, :, :, 2].all() and not x[0, 0, :, :, 3].any()  # occupied channel
+    assert x[0, 2, :, :, 3].all()  # unknown channel
+    with torch.no_grad():
+        y = model(x)
+    assert y.shape == (1, 1, 16, 16, 8) and torch.isfinite(y).all()
+    torch.manual_seed(0)
+    with torch.no_grad():
+        again = OccupancyNet().eval()(x)
+        other = model(torch.from_numpy(encode(np.zeros_like(state), below=4))[None])
+    torch.testing.assert_close(again, y, rtol=0, atol=0)  # seeded weights, same numbers
+    assert not torch.allclose(other, y)  # and the output depends on what was seen
+
+
+def test_shipped_model_continues_observed_ground_into_unseen_space():
+    """The trained model on a window with flat ground seen on one half only."""
+    ckpt = load_checkpoint()
+    w = ckpt.window
+    spec = GridSpec((0.0, 0.0, 0.0), w.voxel_m, w.size)
+    grid = OccupancyGrid(spec)
+    ground_k = w.below - 4  # the camera 1.6 m above the ground
+    nx = w.size[0]
+    grid.state[: nx // 2, :, ground_k] = OCCUPIED
+    grid.state[: nx // 2, :, ground_k + 1:] = FREE
+    predictor = OccupancyPredictor(ckpt, grid)
+    camera = spec.centres(np.array([[nx // 2 - 1, w.size[1] // 2, w.below]]))[0]
+    predictor.update(camera)
+    p = predictor.probability.astype(np.float32)
+    unseen_ground = p[nx // 2: nx // 2 + 8, 8:-8, ground_k]
+    sky = p[nx // 2: nx // 2 + 8, 8:-8, ground_k + 8:]
+    assert unseen_ground.mean() > 0.5, unseen_ground.mean()
+    assert sky.max() < 0.5
+    pts, prob = predictor.predicted()
+    assert len(pts) == len(prob) > 0 and prob.min() >= 0.5
+    assert np.all(pts[:, 0] >= (nx // 2) * w.voxel_m)  # nothing where a return already fell
+
+
+def test_checkpoint_loads_offline_from_the_installed_package(tmp_path: Path):
+    code = ("import json; from mapper.model import load_checkpoint, file_sha256;"
+            "c = load_checkpoint(); print(json.dumps([str(c.path), file_sha256(c.path)]))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120,
+                       env={"PATH": "/usr/bin:/bin", "HOME": str(tmp_path),
+                            "HTTPS_PROXY": "http://127.0.0.1:9", "HTTP_PROXY":
+                            "http://127.0.0.1:9", "NO_PROXY": ""})
+    assert r.returncode == 0, r.stderr
+    path, sha = json.loads(r.stdout)
+    assert Path(path) == shipped_checkpoint()
+    assert Path(path).stat().st_size <= 20e6
+    summary = json.loads(Path(path).with_suffix(".json").read_text())
+    assert summary["sha256"] == sha  # the summary describes these very weights
+
+
+def test_missing_or_corrupt_checkpoint_is_one_line_saying_how_to_rebuild(tmp_path: Path):
+    with pytest.raises(SystemExit, match=r"missing; rebuild it with `rovergate train`"):
+        load_checkpoint(tmp_path / "nope.pt")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(SystemExit, match=r"corrupt .*rebuild it with `rovergate train`"):
+        load_checkpoint(junk)
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(shipped_checkpoint().read_bytes()[:5000])
+    with pytest.raises(SystemExit, match=r"corrupt") as e:
+        load_checkpoint(cut)
+    assert "\n" not in str(e.value)
+    r = subprocess.run([sys.executable, "-m", "rovergate.cli", "run", "--condition", "learned",
+                        "--mapper.checkpoint", str(junk), "--out", str(tmp_path / "r")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0
+    assert r.stderr.strip().splitlines()[-1].startswith("error: the occupancy model checkpoint")
+
+
+def test_a_short_training_run_lowers_the_loss():
+    cfg = TrainConfig(walk_steps=5, snapshot_every=2, iterations=25, batch=2,
+                      crop=(32, 32, 32), threads=1, label_samples=100_000)
+    window = WindowSpec()
+    data = np.stack(gather_world((0, 1000, cfg, window)))
+    assert data.shape[1:] == (2, *window.size)
+    assert (data[:, 1] == 1).any() and (data[:, 0] & OCCUPIED).any()
+    x, y = make_batch(data, np.arange(len(data)), window, window.size, None)
+    torch.manual_seed(0)
+    before = float(masked_loss(OccupancyNet()(x), y, cfg.pos_weight))
+    model, history = train(cfg, data, data[:0], window, progress=False)
+    with torch.no_grad():
+        after = float(masked_loss(model(x), y, cfg.pos_weight))
+    assert after < 0.7 * before, (before, after)
+    assert history["train_loss"] and history["iteration"][-1] == cfg.iterations
+
+
+def test_data_and_training_are_deterministic():
+    """What `rovergate train` relies on to reproduce the shipped weights."""
+    cfg = TrainConfig(walk_steps=3, snapshot_every=2, iterations=3, batch=1,
+                      crop=(16, 16, 16), threads=1, label_samples=50_000)
+    window = WindowSpec()
+    a = np.stack(gather_world((1, 1000, cfg, window)))
+    b = np.stack(gather_world((1, 1000, cfg, window)))
+    np.testing.assert_array_equal(a, b)
+    m1, _ = train(cfg, a, a[:0], window, progress=False)
+    m2, _ = train(cfg, a, a[:0], window, progress=False)
+    for (k, v1), v2 in zip(m1.state_dict().items(), m2.state_dict().values(), strict=True):
+        assert torch.equal(v1, v2), k
+
+
+def test_heightmap_baseline_fills_unreached_columns_at_the_nearest_ground_height():
+    spec = GridSpec((0.0, 0.0, 0.0), 1.0, (6, 3, 5))
+    grid = OccupancyGrid(spec)
+    grid.state[:3, :, 2] = OCCUPIED
+    grid.state[:3, :, 3:] = FREE
+    grid.state[3, 0, 2] = FREE  # a ray showed this one empty: no point there
+    pts = heightmap_completion(grid, np.ones(spec.shape, dtype=bool))
+    ijk, _ = spec.index(pts)
+    assert set(map(tuple, ijk)) == {(i, j, 2) for i in range(3, 6) for j in range(3)} - {
+        (3, 0, 2)}
+
+
+def test_scores_count_hits_within_delta_by_region():
+    spec = GridSpec((0.0, 0.0, 0.0), 1.0, (10, 1, 1))
+    grid = OccupancyGrid(spec)
+    grid.state[:5] = OCCUPIED  # x < 5 observed
+    truth = np.array([[x + 0.5, 0.5, 0.5] for x in range(10)], dtype=np.float32)
+    pred = np.array([[0.5, 0.5, 0.5], [6.5, 0.5, 0.5], [9.6, 0.5, 0.5], [7.0, 3.0, 0.5]],
+                    dtype=np.float32)
+    region = np.ones(spec.shape, dtype=bool)
+    c = score_maps({"m": pred}, truth, cKDTree(truth), grid, region, (0, 0, 0, 10, 1, 1),
+                   [0.2])
+    obs, unobs = c[("m", 0, "observed")], c[("m", 0, "unobserved")]
+    assert (obs.map_points, obs.map_hits, obs.truth_points, obs.truth_hits) == (1, 1, 5, 1)
+    # (7, 3) is outside the box of interest; 6.5 hits, 9.6 is 0.1 from 9.5: hits.
+    assert (unobs.map_points, unobs.map_hits, unobs.truth_points, unobs.truth_hits) == (
+        2, 2, 5, 2)
+    s = unobs.scores()
+    assert s["precision"] == 1.0 and s["recall"] == 0.4
+    assert Counts().scores()["precision"] is None
