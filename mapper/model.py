@@ -118,7 +118,7 @@ class OccupancyNet(nn.Module):
 # ----------------------------------------------------------------------------- checkpoint
 
 CHECKPOINT_NAME = "occupancy.pt"
-REBUILD_HINT = "rebuild it with `rovergate train` (about 40 minutes on a 2-core CPU)"
+REBUILD_HINT = "rebuild it with `rovergate train` (about 35 minutes on a 2-core CPU)"
 
 
 def shipped_checkpoint() -> Path:

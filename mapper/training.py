@@ -76,8 +76,10 @@ class TrainConfig:
     """Training crop of the 64 x 64 x 32 window, in voxels (the model is convolutional)."""
     lr: float = 2e-3
     """Adam learning rate (cosine decay to a twentieth of it)."""
-    pos_weight: float = 2.0
-    """Weight of surface voxels in the loss (they are a few percent of the window)."""
+    pos_weight: float = 4.0
+    """Weight of surface voxels in the loss (they are 5% of the window). It sets where the
+    mapper's fixed 0.5 threshold falls between recall and precision: 2 gave the better
+    precision but no more recall than the geometric baseline in unobserved space."""
     seed: int = 0
     """Seed of the walks' choices, the crops, the augmentations and the initial weights."""
     threads: int = 2

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import resource
 import queue
+import resource
 import threading
 import time
 from collections.abc import Callable
