@@ -30,6 +30,9 @@ from torch import nn
 from mapper.grid import FREE, OCCUPIED, GridSpec, OccupancyGrid
 
 IN_CHANNELS = 8
+#: A vertical run of at most this many predicted voxels is one surface crossing its column (see
+#: OccupancyPredictor.predicted); a longer one is a wall or a steep face.
+SURFACE_RUN_VOXELS = 3
 
 
 @dataclass(frozen=True)
@@ -208,11 +211,53 @@ class OccupancyPredictor:
         self.covered[dst] = True
 
     def predicted(self, threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-        """(M, 3) float32 voxel centres predicted occupied (probability >= threshold) where no
-        depth return fell yet, and their (M,) float32 probabilities.
+        """The prediction as surface points: (M, 3) float32 and their (M,) float32
+        probabilities.
 
-        Voxels with a return are already points of S_t: the observation stands for them.
+        Voxels at probability >= threshold, read column by column as vertical runs (voxels
+        with a depth return join the runs). A surface crossing a column, as the ground does,
+        fills one to three voxels of it (more where the model is unsure of its height): such a
+        run becomes one point at the height where the probabilities of the run and of the
+        voxels under and over it centre, or no point if a return already stands for it (S_t
+        has that point). Longer runs are walls and steep faces: each of their voxels without a
+        return is a point. Without this, the 0.4 m grid makes predicted ground one to three
+        voxels thick, and its upper voxels stand higher over the lower ones than the rover's
+        0.25 m ground clearance: the rover read predicted ground as obstacles and stood still.
         """
-        mask = (self.probability >= threshold) & ((self.grid.state & OCCUPIED) == 0)
-        ijk = np.argwhere(mask)
-        return self.grid.spec.centres(ijk), self.probability[mask].astype(np.float32)
+        observed = (self.grid.state & OCCUPIED) != 0
+        predicted = (self.probability >= threshold) & ~observed
+        ijk = np.argwhere(predicted | observed)  # C order: columns contiguous, k ascending
+        if len(ijk) == 0:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+        pred = predicted[tuple(ijk.T)]
+        prob = self.probability[tuple(ijk.T)].astype(np.float64) * pred
+        starts = np.r_[True, np.any(ijk[1:, :2] != ijk[:-1, :2], axis=1)
+                       | (ijk[1:, 2] != ijk[:-1, 2] + 1)]
+        run = np.cumsum(starts) - 1
+        length = np.bincount(run)
+        has_return = np.bincount(run, weights=~pred) > 0
+        # Long runs: every predicted voxel.
+        long_ = (length[run] > SURFACE_RUN_VOXELS) & pred
+        pts = [self.grid.spec.centres(ijk[long_])]
+        probs = [prob[long_]]
+        # Short runs without a return: one point at the height where the probability of the
+        # run and of the voxel under and over it centres (sub-voxel, as the surface is).
+        short = (length <= SURFACE_RUN_VOXELS) & ~has_return
+        first = np.flatnonzero(starts)[short]
+        i, j, k0 = ijk[first, 0], ijk[first, 1], ijk[first, 2]
+        run_length = length[short]
+        nz = self.grid.spec.shape[2]
+        w = np.zeros(len(first))
+        wk = np.zeros(len(first))
+        for dk in range(-1, SURFACE_RUN_VOXELS + 1):  # from the voxel under the run to over it
+            k = k0 + dk
+            use = (k >= 0) & (k < nz) & (dk <= run_length)
+            p = np.where(use, self.probability[i, j, np.clip(k, 0, nz - 1)], 0.0)
+            w += p
+            wk += p * k
+        k_surface = wk / np.maximum(w, 1e-12)
+        centre = self.grid.spec.centres(ijk[first])
+        centre[:, 2] += ((k_surface - k0) * self.grid.spec.voxel_m).astype(np.float32)
+        pts.append(centre)
+        probs.append(np.maximum.reduceat(prob, np.flatnonzero(starts))[short])
+        return np.concatenate(pts), np.concatenate(probs).astype(np.float32)

@@ -67,7 +67,8 @@ class Hub:
         self._alive_sub = self.session.liveliness().declare_subscriber(
             self.keys.alive_all, self._on_alive, history=True)
         self._status_pub = self.session.declare_publisher(
-            self.keys.key("status"), encoding=cdr_encoding("status"))
+            self.keys.key("status"), encoding=cdr_encoding("status"),
+            congestion_control=zenoh.CongestionControl.BLOCK)
         self._token = self.session.liveliness().declare_token(self.keys.alive("mission"))
         self.procs: dict[str, subprocess.Popen] = {}
         self._logs: list[Any] = []

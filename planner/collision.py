@@ -33,7 +33,12 @@ class OccupancyCollisionModel:
     """FCL model of one step's planner-facing occupancy."""
 
     def __init__(self, points_map: np.ndarray, rover: RoverConfig, bounds_m: tuple[float, ...],
-                 ground_cell_m: float, obstacle_voxel_m: float, fallback_ground_z: float) -> None:
+                 ground_cell_m: float, obstacle_voxel_m: float, fallback_ground_z: float,
+                 predicted: np.ndarray | None = None) -> None:
+        """``predicted``: (N,) bool, the points that are predictions, not measurements. A cell's
+        ground comes from its measured points when it has any: a prediction's height is
+        uncertain by its voxel, and one low predicted point would sink the ground estimate
+        under everything measured around it."""
         self.rover = rover
         self.cell = ground_cell_m
         self.fallback_ground_z = fallback_ground_z
@@ -47,7 +52,13 @@ class OccupancyCollisionModel:
         ij = self._cells(points_map[:, :2]) if len(points_map) else np.zeros((0, 2), int)
         inside = ((ij[:, 0] >= 0) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] >= 0)
                   & (ij[:, 1] < self.shape[1]))
-        np.minimum.at(grid, (ij[inside, 0], ij[inside, 1]), points_map[inside, 2])
+        measured = inside if predicted is None else inside & ~predicted
+        np.minimum.at(grid, (ij[measured, 0], ij[measured, 1]), points_map[measured, 2])
+        if predicted is not None:
+            guess = np.full(self.shape, np.inf)
+            only = inside & predicted
+            np.minimum.at(guess, (ij[only, 0], ij[only, 1]), points_map[only, 2])
+            grid = np.where(np.isfinite(grid), grid, guess)
         half_diag = np.hypot(rover.length_m, rover.width_m) / 2
         size = 2 * int(np.ceil(half_diag / ground_cell_m)) + 1
         self.raw_ground = grid

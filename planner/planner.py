@@ -79,7 +79,8 @@ class GreedyPlanner(Planner):
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
         cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
         points = xyz(occupancy.points)
-        model = motion_model(cfg, points, T_map_base)
+        model = motion_model(cfg, points, T_map_base,
+                             predicted=occupancy.points["source"] == Source.PREDICTED)
         rng = np.random.default_rng([cfg.seed, step])
         candidates = model.sample(rng, pc.n_candidates)
         cameras = [model.camera(c) for c in candidates]

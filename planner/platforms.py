@@ -15,7 +15,7 @@ import numpy as np
 
 from planner.collision import FlyerCollisionModel, OccupancyCollisionModel
 from planner.motion import plan_r3, plan_se2
-from rovergate.config import MissionConfig
+from rovergate.config import MissionConfig, RoverConfig
 from rovergate.platform import camera_from_base
 from rovergate.types import Pose
 
@@ -28,13 +28,15 @@ ESCAPE_RADIUS_M = 1.0
 class MotionModel(abc.ABC):
     """One step's view of the platform (see the module docstring)."""
 
-    def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose) -> None:
+    def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
+                 predicted: np.ndarray | None = None) -> None:
         self.cfg = cfg
         self.points = points
         b = cfg.scene.bounds_m
         self.ground = OccupancyCollisionModel(points, cfg.rover, b, cfg.planner.ground_cell_m,
                                               cfg.planner.obstacle_voxel_m,
-                                              fallback_ground_z=self._fallback_ground(T_map_base))
+                                              fallback_ground_z=self._fallback_ground(T_map_base),
+                                              predicted=predicted)
         self.current = self.state_of(T_map_base)
 
     def _fallback_ground(self, T: Pose) -> float:
@@ -75,9 +77,29 @@ class MotionModel(abc.ABC):
         return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
 
 
+def outside_body(points: np.ndarray, T_map_base: Pose, rover: RoverConfig,
+                 margin_m: float = 0.05) -> np.ndarray:
+    """(N,) bool: the map points that are not inside the rover's body where it stands.
+
+    The body occupies that space, so nothing the map holds there can be real (a robot's self
+    filter); a learned prediction in the mast camera's blind band around the rover otherwise
+    boxes the rover in where it stands, with no motion left that the map calls free.
+    """
+    if len(points) == 0:
+        return np.ones(0, dtype=bool)
+    p = (points - T_map_base.position) @ T_map_base.matrix()[:3, :3]  # base frame
+    inside = ((np.abs(p[:, 0]) <= rover.length_m / 2 + margin_m)
+              & (np.abs(p[:, 1]) <= rover.width_m / 2 + margin_m)
+              & (p[:, 2] > rover.clearance_m) & (p[:, 2] < rover.body_top_m))
+    return ~inside
+
+
 class RoverModel(MotionModel):
-    def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose) -> None:
-        super().__init__(cfg, points, T_map_base)
+    def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
+                 predicted: np.ndarray | None = None) -> None:
+        keep = outside_body(points, T_map_base, cfg.rover)
+        super().__init__(cfg, points[keep], T_map_base,
+                         None if predicted is None else predicted[keep])
         if cfg.planner.known_ground_only:
             self.ground.drive_known_ground_only(*self.current[:2])
 
@@ -111,8 +133,9 @@ class RoverModel(MotionModel):
 
 
 class FlyerModel(MotionModel):
-    def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose) -> None:
-        super().__init__(cfg, points, T_map_base)
+    def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
+                 predicted: np.ndarray | None = None) -> None:
+        super().__init__(cfg, points, T_map_base, predicted)
         self.sphere = FlyerCollisionModel(points, cfg.flyer, self.ground)
 
     def _fallback_ground(self, T: Pose) -> float:
@@ -184,6 +207,9 @@ class FlyerModel(MotionModel):
         return True  # turning in place moves no part of the sphere
 
 
-def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose) -> MotionModel:
-    """The motion model of ``cfg.platform`` for one step."""
-    return (FlyerModel if cfg.platform == "flyer" else RoverModel)(cfg, points, T_map_base)
+def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
+                 predicted: np.ndarray | None = None) -> MotionModel:
+    """The motion model of ``cfg.platform`` for one step; ``predicted`` marks the points that
+    are predictions (the map's ``source``)."""
+    return (FlyerModel if cfg.platform == "flyer" else RoverModel)(cfg, points, T_map_base,
+                                                                   predicted)

@@ -73,8 +73,12 @@ class ModuleNode:
         self._publish_s = 0.0
         self._token: zenoh.LivelinessToken | None = None
         self.session = open_session(session_cfg)
+        # BLOCK, not zenoh's default DROP: in lockstep every message is awaited, and DROP
+        # discards a sample when a link's queue is full (a subscriber busy for a moment), which
+        # lost the mission's copy of a step's prediction while the gate got its own.
         self._publishers = {
-            t: self.session.declare_publisher(self.keys.key(t), encoding=cdr_encoding(t))
+            t: self.session.declare_publisher(self.keys.key(t), encoding=cdr_encoding(t),
+                                              congestion_control=zenoh.CongestionControl.BLOCK)
             for t in [*outputs, "timing"]}
         # The status topic is always watched: it carries the end of the mission.
         watched = {i.topic for i in inputs.values()} | {"status"}

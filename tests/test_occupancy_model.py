@@ -203,3 +203,26 @@ def test_scores_count_hits_within_delta_by_region():
     s = unobs.scores()
     assert s["precision"] == 1.0 and s["recall"] == 0.4
     assert Counts().scores()["precision"] is None
+
+
+def test_prediction_is_published_as_a_surface_not_a_thick_band():
+    """Ground one to three voxels thick is one point per column at its sub-voxel height; a
+    wall keeps a point per voxel; a column whose surface was measured gets no point."""
+    ckpt = load_checkpoint()
+    spec = GridSpec((0.0, 0.0, 0.0), ckpt.window.voxel_m, (4, 1, 10))
+    grid = OccupancyGrid(spec)
+    predictor = OccupancyPredictor(ckpt, grid)
+    p = predictor.probability
+    p[0, 0, 2] = p[0, 0, 3] = 0.9  # ground between voxels 2 and 3: one point at their border
+    p[1, 0, 2:5] = [0.6, 0.9, 0.6]  # unsure of its height, centred on voxel 3
+    p[2, 0, 1:8] = 0.9  # a wall 2.8 m high
+    p[3, 0, 4] = p[3, 0, 5] = 0.9
+    grid.state[3, 0, 3] = OCCUPIED  # measured just under: S_t stands for this surface
+    pts, prob = predictor.predicted()
+    by_column = {i: sorted(z for (x, _, z) in pts.tolist() if int(x / spec.voxel_m) == i)
+                 for i in range(4)}
+    assert by_column[0] == pytest.approx([3.0 * spec.voxel_m])
+    assert by_column[1] == pytest.approx([3.5 * spec.voxel_m])
+    assert by_column[2] == pytest.approx([(k + 0.5) * spec.voxel_m for k in range(1, 8)])
+    assert by_column[3] == []
+    assert np.all(prob >= 0.5)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from planner.collision import OccupancyCollisionModel
 from planner.gain import render_gain, visible_mask
@@ -121,3 +122,29 @@ def test_greedy_planner_moves_towards_novel_points_and_is_deterministic():
                                                           for p in b.path.poses]
     end = a.path.poses[-1]
     assert abs(np.cos(end.yaw)) > 0.3 and np.cos(end.yaw) > 0  # now looks towards +x
+
+
+def test_map_points_inside_the_rover_body_are_not_obstacles():
+    """The body occupies the space where it stands (a self filter)."""
+    from planner.platforms import outside_body
+    T = Pose.from_xyz_yaw(2.0, 1.0, 0.5, np.pi / 2)  # facing +y
+    pts = np.array([[2.0, 1.4, 1.0],    # inside: 0.4 m ahead, 0.5 m over the base
+                    [2.0, 1.7, 1.0],    # 0.7 m ahead: beyond the 0.5 m half length
+                    [2.3, 1.0, 1.0],    # 0.3 m to the right: within the 0.35 m half width
+                    [2.0, 1.0, 0.6],    # under the clearance: ground, kept
+                    [2.0, 1.0, 1.5]],   # over the body's top: kept
+                   dtype=np.float32)
+    assert outside_body(pts, T, RoverConfig()).tolist() == [False, True, False, True, True]
+
+
+def test_ground_comes_from_measurements_where_a_cell_has_them():
+    rover = RoverConfig()
+    ground = np.array([[x, y, 0.0] for x in np.arange(-2, 2.01, 0.25)
+                       for y in np.arange(-2, 2.01, 0.25)], dtype=np.float32)
+    low_guess = np.array([[0.1, 0.1, -0.4]], dtype=np.float32)  # a prediction 0.4 m too low
+    pts = np.vstack([ground, low_guess])
+    predicted = np.r_[np.zeros(len(ground), bool), True]
+    blind = OccupancyCollisionModel(pts, rover, BOUNDS, 0.5, 0.15, 0.0)
+    told = OccupancyCollisionModel(pts, rover, BOUNDS, 0.5, 0.15, 0.0, predicted=predicted)
+    assert blind.ground_z(0.1, 0.1) == pytest.approx(-0.4)
+    assert told.ground_z(0.1, 0.1) == pytest.approx(0.0)
