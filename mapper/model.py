@@ -51,17 +51,26 @@ class WindowSpec:
         return ijk[0] - half
 
 
+def overlap(start: np.ndarray, size: tuple[int, int, int], shape: tuple[int, ...]
+            ) -> tuple[tuple[slice, ...], tuple[slice, ...]] | None:
+    """Where a window at ``start`` of ``size`` meets a volume of ``shape``: (the slices in the
+    volume, the slices in the window), or None where they do not meet."""
+    lo = np.maximum(start, 0)
+    hi = np.minimum(start + np.asarray(size), shape)
+    if np.any(hi <= lo):
+        return None
+    in_volume = tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))
+    in_window = tuple(slice(a - s, b - s) for a, b, s in zip(lo, hi, start, strict=True))
+    return in_volume, in_window
+
+
 def crop(volume: np.ndarray, start: np.ndarray, size: tuple[int, int, int],
          fill: float | int = 0) -> np.ndarray:
     """The ``size`` block of ``volume`` from index ``start``; outside it reads ``fill``."""
     out = np.full(size, fill, dtype=volume.dtype)
-    lo = np.maximum(start, 0)
-    hi = np.minimum(start + size, volume.shape)
-    if np.any(hi <= lo):
-        return out
-    dst = tuple(slice(a - s, b - s) for a, b, s in zip(lo, hi, start, strict=True))
-    src = tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))
-    out[dst] = volume[src]
+    where = overlap(start, size, volume.shape)
+    if where is not None:
+        out[where[1]] = volume[where[0]]
     return out
 
 
@@ -201,14 +210,10 @@ class OccupancyPredictor:
         x = encode(crop(self.grid.state, start, w.size), w.below)
         logits = self.model(torch.from_numpy(x)[None])[0, 0].numpy()
         prob = 1.0 / (1.0 + np.exp(-logits))
-        lo = np.maximum(start, 0)
-        hi = np.minimum(start + np.array(w.size), self.grid.spec.shape)
-        if np.any(hi <= lo):
-            return
-        dst = tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))
-        src = tuple(slice(a - s, b - s) for a, b, s in zip(lo, hi, start, strict=True))
-        self.probability[dst] = prob[src]
-        self.covered[dst] = True
+        where = overlap(start, w.size, self.grid.spec.shape)
+        if where is not None:
+            self.probability[where[0]] = prob[where[1]]
+            self.covered[where[0]] = True
 
     def predicted(self, threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
         """The prediction as surface points: (M, 3) float32 and their (M,) float32
