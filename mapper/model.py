@@ -182,6 +182,16 @@ def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def weights_sha256(model: nn.Module) -> str:
+    """SHA-256 of the weights alone (every tensor's bytes, in state-dict order): what a
+    reproduction must match, whatever timings the checkpoint's metadata records."""
+    h = hashlib.sha256()
+    for name, t in model.state_dict().items():
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 # ----------------------------------------------------------------------------- inference
 
 class OccupancyPredictor:

@@ -31,6 +31,7 @@ from mapper.model import (
     file_sha256,
     save_checkpoint,
     shipped_checkpoint,
+    weights_sha256,
 )
 from mapper.walks import random_sensing, walk
 from rover_sim import suite
@@ -290,10 +291,11 @@ def main(cfg: TrainConfig) -> int:
     }
     save_checkpoint(cfg.out, model, window, meta)
     summary = cfg.out.with_suffix(".json")
-    summary.write_text(json.dumps({**meta, "sha256": file_sha256(cfg.out)}, indent=1) + "\n")
+    summary.write_text(json.dumps({**meta, "sha256": file_sha256(cfg.out),
+                                   "weights_sha256": weights_sha256(model)}, indent=1) + "\n")
     final = history["val"][-1] if history["val"] else {}
     print(f"checkpoint: {cfg.out} ({cfg.out.stat().st_size / 1e6:.1f} MB), sha256 "
-          f"{file_sha256(cfg.out)[:16]}; data {t_data / 60:.1f} min, training "
-          f"{t_train / 60:.1f} min; validation "
+          f"{file_sha256(cfg.out)[:16]}, weights {weights_sha256(model)[:16]}; data "
+          f"{t_data / 60:.1f} min, training {t_train / 60:.1f} min; validation "
           + ", ".join(f"{k} {v:.3f}" for k, v in final.items() if k != "iteration"))
     return 0

@@ -107,19 +107,21 @@ def test_shipped_model_continues_observed_ground_into_unseen_space():
 
 
 def test_checkpoint_loads_offline_from_the_installed_package(tmp_path: Path):
-    code = ("import json; from mapper.model import load_checkpoint, file_sha256;"
-            "c = load_checkpoint(); print(json.dumps([str(c.path), file_sha256(c.path)]))")
+    code = ("import json; from mapper.model import load_checkpoint, file_sha256, weights_sha256;"
+            "c = load_checkpoint(); print(json.dumps([str(c.path), file_sha256(c.path), "
+            "weights_sha256(c.model)]))")
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                        text=True, timeout=120,
                        env={"PATH": "/usr/bin:/bin", "HOME": str(tmp_path),
                             "HTTPS_PROXY": "http://127.0.0.1:9", "HTTP_PROXY":
                             "http://127.0.0.1:9", "NO_PROXY": ""})
     assert r.returncode == 0, r.stderr
-    path, sha = json.loads(r.stdout)
+    path, sha, weights = json.loads(r.stdout)
     assert Path(path) == shipped_checkpoint()
     assert Path(path).stat().st_size <= 20e6
     summary = json.loads(Path(path).with_suffix(".json").read_text())
-    assert summary["sha256"] == sha  # the summary describes these very weights
+    assert summary["sha256"] == sha  # the summary describes this very file
+    assert summary["weights_sha256"] == weights
 
 
 def test_missing_or_corrupt_checkpoint_is_one_line_saying_how_to_rebuild(tmp_path: Path):
