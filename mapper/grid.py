@@ -69,9 +69,12 @@ class OccupancyGrid:
         self.state = np.zeros(spec.shape, dtype=np.uint8)
         """(nx, ny, nz) uint8: bit FREE, bit OCCUPIED; 0 is unknown."""
 
-    def integrate(self, depth_m: np.ndarray, k: CameraIntrinsics,
-                  T_map_camera: np.ndarray) -> None:
-        """Mark the returns of one z-depth frame occupied and the space before them free."""
+    def integrate(self, depth_m: np.ndarray, k: CameraIntrinsics, T_map_camera: np.ndarray,
+                  returns_map: np.ndarray | None = None) -> None:
+        """Mark the returns of one z-depth frame occupied and the space before them free.
+
+        ``returns_map``: the frame's back-projected returns, where the caller has them already
+        (the mapper does, for S_t); computed here otherwise."""
         spec = self.spec
         flat_state = self.state.reshape(-1)
         # Free space first, from every ray_stride-th pixel (the voxels are several pixels wide
@@ -93,8 +96,9 @@ class OccupancyGrid:
             ijk, inside = spec.index(samples)
             idx = spec.flat(ijk[inside])
             flat_state[idx] |= FREE
-        occ = backproject(depth_m, k, T_map_camera)
-        ijk, inside = spec.index(occ)
+        if returns_map is None:
+            returns_map = backproject(depth_m, k, T_map_camera)
+        ijk, inside = spec.index(returns_map)
         idx = spec.flat(ijk[inside])
         flat_state[idx] |= OCCUPIED
 

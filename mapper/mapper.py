@@ -47,8 +47,9 @@ class Mapper:
 
     With a checkpoint, each frame also goes into the occupied / free / unknown grid over the
     box of interest ``bounds_m``, the model predicts the window around the camera, and the
-    published prediction is every voxel centre at probability >= 0.5 with no return in it yet.
-    Without one, the prediction is an empty cloud (never a fake one).
+    published prediction is its surface at probability >= 0.5 where no return fell yet
+    (:meth:`mapper.model.OccupancyPredictor.predicted`). Without one, the prediction is an
+    empty cloud (never a fake one).
     """
 
     def __init__(self, cfg: MapperConfig, bounds_m: tuple[float, ...] | None = None,
@@ -75,7 +76,7 @@ class Mapper:
         if self.predictor is None:
             predicted = np.zeros(0, dtype=PREDICTED_DTYPE)
         else:
-            self.grid.integrate(frame.depth_m, frame.intrinsics, T_cam)
+            self.grid.integrate(frame.depth_m, frame.intrinsics, T_cam, returns_map=pts)
             self.predictor.update(T_cam[:3, 3])
             p_xyz, prob = self.predictor.predicted()
             predicted = make_cloud(p_xyz, PREDICTED_DTYPE, probability=prob)

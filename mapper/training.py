@@ -10,12 +10,11 @@ thread count, the run reproduces the shipped checkpoint bit for bit.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import multiprocessing as mp
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -114,7 +113,7 @@ def surface_labels(scene: Scene, spec: GridSpec, n: int, seed: int) -> np.ndarra
     nothing and the label is empty too)."""
     lo = np.asarray(spec.origin_m)
     hi = lo + np.asarray(spec.shape) * spec.voxel_m
-    everywhere = dataclasses.replace(scene, bounds_m=(*lo, *hi))
+    everywhere = replace(scene, bounds_m=(*lo, *hi))
     labels = np.zeros(spec.shape, dtype=np.uint8)
     ijk, inside = spec.index(everywhere.surface_samples(n, seed=seed))
     labels[tuple(ijk[inside].T)] = 1
