@@ -67,13 +67,8 @@ class OccupancyCollisionModel:
         h = points_map[inside, 2] - self.ground[ij[inside, 0], ij[inside, 1]]
         obstacle = (h > rover.clearance_m) & (h < rover.body_top_m)
         self.obstacle_points = points_map[inside][obstacle]
-        edge = obstacle_voxel_m
-        self._objects = [fcl.CollisionObject(fcl.Box(edge, edge, edge), fcl.Transform(p))
-                         for p in self.obstacle_points.astype(np.float64)]
-        self._manager = fcl.DynamicAABBTreeCollisionManager()
-        if self._objects:
-            self._manager.registerObjects(self._objects)
-        self._manager.setup()
+        self._edge = obstacle_voxel_m
+        self._manager: fcl.DynamicAABBTreeCollisionManager | None = None  # built on first use
         body_h = rover.body_top_m - rover.clearance_m
         self._body = fcl.CollisionObject(fcl.Box(rover.length_m, rover.width_m, body_h))
         self._body_dz = rover.clearance_m + body_h / 2
@@ -82,6 +77,17 @@ class OccupancyCollisionModel:
         self.known_ground_only = False
         self.home: tuple[float, float] | None = None
         self.home_radius = float(np.hypot(rover.length_m, rover.width_m))
+
+    def _build_manager(self) -> fcl.DynamicAABBTreeCollisionManager:
+        """The FCL broad phase over the obstacle points (built only when the body is checked:
+        the flyer's sphere never is)."""
+        e = self._edge
+        self._objects = [fcl.CollisionObject(fcl.Box(e, e, e), fcl.Transform(p))
+                         for p in self.obstacle_points.astype(np.float64)]
+        manager = fcl.DynamicAABBTreeCollisionManager()
+        manager.registerObjects(self._objects)
+        manager.setup()
+        return manager
 
     def drive_known_ground_only(self, x: float, y: float) -> None:
         """From now on, poses farther than a body diagonal from (x, y) need map points under
@@ -102,9 +108,20 @@ class OccupancyCollisionModel:
     def ground_z(self, x: float, y: float) -> float:
         """Estimated ground height under (x, y); the fallback where the map has no points."""
         i, j = self._cell(x, y)
-        if 0 <= i < self.shape[0] and 0 <= j < self.shape[1] and np.isfinite(self.ground[i, j]):
-            return float(self.ground[i, j])
+        if 0 <= i < self.shape[0] and 0 <= j < self.shape[1]:
+            g = float(self.ground[i, j])
+            if math.isfinite(g):
+                return g
         return self.fallback_ground_z
+
+    def ground_z_many(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) estimated ground height under each of (N, 2) positions (see :meth:`ground_z`)."""
+        ij = self._cells(np.asarray(xy, dtype=np.float64))
+        ok = ((ij[:, 0] >= 0) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] >= 0)
+              & (ij[:, 1] < self.shape[1]))
+        g = np.full(len(ij), self.fallback_ground_z)
+        g[ok] = self.ground[ij[ok, 0], ij[ok, 1]]
+        return np.where(np.isfinite(g), g, self.fallback_ground_z)
 
     def _terrain_grid(self) -> tuple[np.ndarray, np.ndarray]:
         """Per cell: whether the ground around it is known, and whether it is within limits.
@@ -160,8 +177,10 @@ class OccupancyCollisionModel:
         self.checks += 1
         if not self.traversable(x, y, yaw):
             return False
-        if not self._objects:
+        if len(self.obstacle_points) == 0:
             return True
+        if self._manager is None:
+            self._manager = self._build_manager()
         c, s = np.cos(yaw), np.sin(yaw)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         self._body.setTransform(fcl.Transform(R, [x, y, self.ground_z(x, y) + self._body_dz]))
@@ -196,4 +215,18 @@ class FlyerCollisionModel:
         if self._tree is None:
             return True
         d, _ = self._tree.query((x, y, z), distance_upper_bound=self.reach)
-        return not np.isfinite(d)
+        return not math.isfinite(d)
+
+    def free_many(self, xyz: np.ndarray, band: bool = True) -> np.ndarray:
+        """(N,) bool: :meth:`is_free` of many sphere centres at once."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        self.checks += len(xyz)
+        ok = np.ones(len(xyz), dtype=bool)
+        if band:
+            g = self.ground.ground_z_many(xyz[:, :2])
+            z = xyz[:, 2] - g
+            ok = (z >= self.cfg.min_altitude_m) & (z <= self.cfg.max_altitude_m)
+        if self._tree is not None and ok.any():
+            d, _ = self._tree.query(xyz[ok], distance_upper_bound=self.reach)
+            ok[ok] = ~np.isfinite(d)
+        return ok

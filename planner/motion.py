@@ -22,7 +22,8 @@ SE2 = tuple[float, float, float]
 def _rrt_connect(space, read: Callable, write: Callable, start, goal,
                  is_free: Callable[..., bool], max_checks: int,
                  resolution_m: float) -> list | None:
-    """RRT-Connect in ``space`` (bounds set), stopped after ``max_checks`` validity checks.
+    """The straight motion if it is free, else RRT-Connect in ``space`` (bounds set), stopped
+    after ``max_checks`` validity checks.
 
     ``read(state)`` gives a tuple from an OMPL state, ``write(state, values)`` sets one.
     """
@@ -40,6 +41,11 @@ def _rrt_connect(space, read: Callable, write: Callable, start, goal,
     write(s, start)
     write(g, goal)
     ss.setStartAndGoalStates(s, g)
+    ss.setup()
+    if valid(s) and si.checkMotion(s, g):
+        # The straight motion is free (OMPL's discrete motion check at ``resolution_m``): it is
+        # the shortest path, and what simplifying a tree's path would converge to.
+        return [read(s), read(g)]
     ss.setPlanner(og.RRTConnect(si))
     ptc = ob.PlannerTerminationCondition(lambda: checks[0] >= max_checks)
     status = ss.solve(ptc)

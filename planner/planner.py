@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from planner.gain import render_gain
+from planner.gain import GainField, render_gain
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
 from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
@@ -88,7 +88,7 @@ class GreedyPlanner(Planner):
                                       sensor.vfov_deg).scaled(pc.gain_resolution)
         novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
         gains = render_gain(points, novel, cameras, k, sensor.min_range_m, sensor.max_range_m,
-                            pc.zbuffer_tolerance_m)
+                            pc.zbuffer_tolerance_m, pc.gain_voxel_m)
         here = np.array(model.current[:3 if cfg.platform == "flyer" else 2])
         travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
         order = np.lexsort((travel, -gains))  # best gain first, then the nearer
@@ -115,8 +115,96 @@ class GreedyPlanner(Planner):
         return PlanPath(step, [model.base_pose(s) for s in states])
 
 
+@dataclass
+class _Trajectory:
+    """A node of the beam: states from the current one, what their views saw, and the score."""
+
+    states: list
+    seen: np.ndarray
+    """(P,) bool over the gain primitives seen by the views of ``states[1:]``."""
+    gain: int
+    travel_m: float
+    first: int
+    """Index of its first motion among the first level's candidates."""
+
+
+class BeamPlanner(Planner):
+    """Long-horizon next best view, as the paper's fixed planner (MAGICIAN) searches.
+
+    Beam search over candidate viewpoints: the first level samples ``n_candidates`` states
+    within the motion budget of the current one; each later level samples ``beam_branch`` more
+    from the end of each kept trajectory. Every straight segment is collision-checked against
+    the planner-facing map (``segment_check_m`` apart), and a trajectory is scored by its
+    cumulative rendered gain, each gain primitive counted once along it. After each level the
+    ``beam_width`` best (then shortest) trajectories are kept. The first motion of the best
+    trajectory is planned with OMPL on the same map and executed; the next step replans from
+    the new observations. If OMPL finds no path within the budget, the first motions of the
+    other trajectories are tried in the order of their best continuation.
+    """
+
+    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
+        cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
+        points = xyz(occupancy.points)
+        model = motion_model(cfg, points, T_map_base,
+                             predicted=occupancy.points["source"] == Source.PREDICTED)
+        rng = np.random.default_rng([cfg.seed, step])
+        k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
+                                      sensor.vfov_deg).scaled(pc.gain_resolution)
+        novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
+        field = GainField(points, novel, pc.gain_voxel_m, k, sensor.min_range_m,
+                          sensor.max_range_m, pc.zbuffer_tolerance_m)
+        dims = 3 if cfg.platform == "flyer" else 2
+
+        def extend(node: _Trajectory, n: int) -> list[_Trajectory]:
+            last = node.states[-1]
+            out = []
+            for c in model.sample(rng, n, around=last):
+                if not model.segment_free(last, c):
+                    continue
+                vis = field.visible(model.camera(c))
+                seen = node.seen.copy()
+                seen[vis] = True
+                out.append(_Trajectory(node.states + [c], seen, node.gain + field.gain(vis,
+                                                                                  node.seen),
+                                       node.travel_m + float(np.linalg.norm(
+                                           np.subtract(c[:dims], last[:dims]))),
+                                       node.first))
+            return out
+
+        root = _Trajectory([model.current], np.zeros(len(field), dtype=bool), 0, 0.0, -1)
+        level = extend(root, pc.n_candidates)
+        for i, t in enumerate(level):
+            t.first = i
+        firsts = list(level)
+        best_of_first = {t.first: t.gain for t in level}  # best continuation of each first motion
+        beam = sorted(level, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
+        for _ in range(pc.beam_depth - 1):
+            children = [c for node in beam for c in extend(node, pc.beam_branch)]
+            if not children:
+                break
+            for c in children:
+                best_of_first[c.first] = max(best_of_first[c.first], c.gain)
+            beam = sorted(children, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
+        order = sorted(firsts, key=lambda t: (-best_of_first[t.first], t.travel_m))
+        attempts = 0
+        for t in order[: pc.max_attempts]:
+            attempts += 1
+            goal = t.states[1]
+            path = model.plan(model.current, goal,
+                              seed=cfg.seed * 100_003 + step * 101 + attempts)
+            if path is None or model.length(path) > pc.max_step_m:
+                continue
+            return PlanResult(GreedyPlanner._to_path(step, path, model),
+                              int(best_of_first[t.first]), attempts, "best-feasible")
+        turn = model.turn(model.current)
+        if model.is_free_turn(turn):
+            return PlanResult(GreedyPlanner._to_path(step, [model.current, turn], model), 0,
+                              attempts, "rotate")
+        return PlanResult(PlanPath(step, [T_map_base]), 0, attempts, "stay")
+
+
 #: Planner registry: ``--planner.name`` chooses.
-PLANNERS: dict[str, type[Planner]] = {"greedy": GreedyPlanner}
+PLANNERS: dict[str, type[Planner]] = {"beam": BeamPlanner, "greedy": GreedyPlanner}
 
 
 def make_planner(cfg: MissionConfig) -> Planner:

@@ -46,8 +46,10 @@ class MotionModel(abc.ABC):
     def state_of(self, T_map_base: Pose) -> State: ...
 
     @abc.abstractmethod
-    def sample(self, rng: np.random.Generator, n: int) -> list[State]:
-        """``n`` candidate states within one step's motion budget of the current state."""
+    def sample(self, rng: np.random.Generator, n: int, around: State | None = None
+               ) -> list[State]:
+        """``n`` candidate states within one step's motion budget of ``around`` (default: the
+        current state)."""
 
     @abc.abstractmethod
     def base_pose(self, state: State) -> Pose: ...
@@ -62,6 +64,17 @@ class MotionModel(abc.ABC):
     @abc.abstractmethod
     def plan(self, start: State, goal: State, seed: int) -> list[State] | None:
         """A collision-free motion from ``start`` to ``goal`` on the map, or None."""
+
+    @abc.abstractmethod
+    def segment_free(self, a: State, b: State) -> bool:
+        """Whether the straight motion from ``a`` to ``b`` is free on the map, checked every
+        ``PlannerConfig.segment_check_m`` (the look-ahead of the beam search)."""
+
+    def _steps(self, a: State, b: State, dims: int) -> np.ndarray:
+        """Fractions 0..1 along a -> b, spaced at most ``segment_check_m`` apart."""
+        d = float(np.linalg.norm(np.subtract(b[:dims], a[:dims])))
+        n = max(int(np.ceil(d / self.cfg.planner.segment_check_m)), 1)
+        return np.linspace(0.0, 1.0, n + 1)
 
     @abc.abstractmethod
     def turn(self, state: State) -> State:
@@ -106,8 +119,9 @@ class RoverModel(MotionModel):
     def state_of(self, T: Pose) -> State:
         return (float(T.position[0]), float(T.position[1]), T.yaw)
 
-    def sample(self, rng: np.random.Generator, n: int) -> list[State]:
-        x0, y0, _ = self.current
+    def sample(self, rng: np.random.Generator, n: int, around: State | None = None
+               ) -> list[State]:
+        x0, y0, _ = self.current if around is None else around
         b, pc = self.cfg.scene.bounds_m, self.cfg.planner
         r = pc.max_step_m * np.sqrt(rng.uniform(0, 1, n))
         th = rng.uniform(-np.pi, np.pi, n)
@@ -128,6 +142,14 @@ class RoverModel(MotionModel):
         return plan_se2(start, goal, self.ground.is_free, (b[0], b[1], b[3], b[4]), seed=seed,
                         max_checks=self.cfg.planner.ompl_max_checks)
 
+    def segment_free(self, a: State, b: State) -> bool:
+        dyaw = (b[2] - a[2] + np.pi) % (2 * np.pi) - np.pi
+        for f in self._steps(a, b, 2)[1:]:
+            if not self.ground.is_free(a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]),
+                                       a[2] + f * dyaw):
+                return False
+        return True
+
     def turn(self, s: State) -> State:
         return (s[0], s[1], s[2] + np.pi / 2)
 
@@ -145,8 +167,9 @@ class FlyerModel(MotionModel):
         x, y, z = (float(v) for v in T.position)
         return (x, y, z, T.yaw, T.pitch)
 
-    def sample(self, rng: np.random.Generator, n: int) -> list[State]:
-        x0, y0, z0 = self.current[:3]
+    def sample(self, rng: np.random.Generator, n: int, around: State | None = None
+               ) -> list[State]:
+        x0, y0, z0 = (self.current if around is None else around)[:3]
         b, f, pc = self.cfg.scene.bounds_m, self.cfg.flyer, self.cfg.planner
         d = rng.standard_normal((n, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -199,6 +222,13 @@ class FlyerModel(MotionModel):
         dyaw = (goal[3] - start[3] + np.pi) % (2 * np.pi) - np.pi
         return [(*path[i], float(start[3] + f[i] * dyaw),
                  float(start[4] + f[i] * (goal[4] - start[4]))) for i in range(len(path))]
+
+    def segment_free(self, a: State, b: State) -> bool:
+        f = self._steps(a, b, 3)[1:, None]
+        p = np.asarray(a[:3]) + f * (np.asarray(b[:3]) - np.asarray(a[:3]))
+        # As in plan(): near the current state the flyer may leave a spot the map now blocks.
+        check = np.sum((p - np.asarray(self.current[:3])) ** 2, axis=1) >= ESCAPE_RADIUS_M**2
+        return bool(self.sphere.free_many(p[check]).all())
 
     def turn(self, s: State) -> State:
         return (*s[:3], s[3] + np.pi / 2, 0.0)

@@ -160,10 +160,23 @@ class GateConfig:
 class PlannerConfig:
     """Next-best-view selection and motion planning."""
 
-    name: str = "greedy"
-    """Planner (registry: greedy)."""
+    name: str = "beam"
+    """Planner: beam (the paper's long-horizon search, MAGICIAN-style) or greedy (the best
+    next view only)."""
     n_candidates: int = 32
-    """Candidate rover poses sampled each step within the motion budget."""
+    """Candidate poses sampled each step within the motion budget (the beam's first level)."""
+    beam_width: int = 3
+    """Beam search: trajectories kept after each level."""
+    beam_depth: int = 3
+    """Beam search: steps of look-ahead (1 is the greedy choice over straight motions)."""
+    beam_branch: int = 8
+    """Beam search: candidates sampled from the end of each kept trajectory, after the first
+    level."""
+    segment_check_m: float = 0.05
+    """Beam search: spacing of the collision checks along each look-ahead segment."""
+    gain_voxel_m: float = 0.3
+    """Edge of the voxels that gather the map into gain primitives (MAGICIAN renders
+    Gaussians; we render one weighted primitive per voxel)."""
     max_step_m: float = 3.0
     """Motion budget per step: the longest path the rover drives in one step."""
     gain_resolution: float = 0.25

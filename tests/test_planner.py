@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from planner.collision import OccupancyCollisionModel
-from planner.gain import render_gain, visible_mask
+from planner.gain import GainField, render_gain, visible_mask
 from planner.motion import path_length, plan_se2
-from planner.planner import GreedyPlanner, novel_mask
+from planner.planner import BeamPlanner, GreedyPlanner, novel_mask
 from rovergate.config import MissionConfig, RoverConfig
 from rovergate.platform import R_BODY_OPTICAL
 from rovergate.types import PLANNER_DTYPE, CameraIntrinsics, PlannerMap, Pose, Source, make_cloud
@@ -40,8 +40,20 @@ def test_gain_counts_only_novel_visible_points():
     pts = grid_wall(5.0)
     novel = np.zeros(len(pts), dtype=bool)
     novel[:50] = True
-    gains = render_gain(pts, novel, [cam(), cam(-30.0)], K, 0.3, 20.0, 0.3)
+    gains = render_gain(pts, novel, [cam(), cam(-30.0)], K, 0.3, 20.0, 0.3, voxel_m=0.05)
     assert gains[0] == 50 and gains[1] == 0  # second camera is out of range
+
+
+def test_gain_primitives_gather_points_and_count_each_once_along_a_trajectory():
+    pts = grid_wall(5.0)  # 20 x 20 points 0.21 m apart
+    novel = np.ones(len(pts), dtype=bool)
+    field = GainField(pts, novel, 1.0, K, 0.3, 20.0, 0.3)
+    assert len(field) < len(pts) and field.weight.sum() == len(pts)
+    vis = field.visible(cam())
+    assert field.gain(vis) == len(pts)
+    seen = np.zeros(len(field), dtype=bool)
+    seen[vis] = True
+    assert field.gain(field.visible(cam(1.0)), seen) == 0  # the next view sees nothing new
 
 
 def flat_ground(extra=None):
@@ -104,7 +116,8 @@ def test_novelty_of_observed_and_predicted_points():
     assert novel.tolist() == [False, True, False, True]
 
 
-def test_greedy_planner_moves_towards_novel_points_and_is_deterministic():
+@pytest.mark.parametrize("planner", [GreedyPlanner, BeamPlanner])
+def test_planners_move_towards_novel_points_and_are_deterministic(planner):
     cfg = MissionConfig()
     cfg.scene.bounds_m = BOUNDS
     cfg.scene.d_scene_m = 30.0
@@ -115,8 +128,8 @@ def test_greedy_planner_moves_towards_novel_points_and_is_deterministic():
     occ = PlannerMap(0, make_cloud(pts, PLANNER_DTYPE, source=src.astype(np.uint8),
                                    views=np.r_[np.full(len(ground), 5), np.zeros(len(target))]))
     here = Pose.from_xyz_yaw(0.0, 0.0, 0.0, np.pi)  # facing away from the target
-    a = GreedyPlanner(cfg).plan(0, occ, here)
-    b = GreedyPlanner(cfg).plan(0, occ, here)
+    a = planner(cfg).plan(0, occ, here)
+    b = planner(cfg).plan(0, occ, here)
     assert a.reason == "best-feasible" and a.gain > 0
     assert [p.position.tolist() for p in a.path.poses] == [p.position.tolist()
                                                           for p in b.path.poses]
@@ -148,3 +161,19 @@ def test_ground_comes_from_measurements_where_a_cell_has_them():
     told = OccupancyCollisionModel(pts, rover, BOUNDS, 0.5, 0.15, 0.0, predicted=predicted)
     assert blind.ground_z(0.1, 0.1) == pytest.approx(-0.4)
     assert told.ground_z(0.1, 0.1) == pytest.approx(0.0)
+
+
+def test_beam_segments_are_checked_along_their_length():
+    """A straight segment through a wall is blocked though both of its ends are free."""
+    from planner.platforms import motion_model
+    cfg = MissionConfig(platform="flyer")
+    cfg.scene.bounds_m = BOUNDS
+    cfg.scene.d_scene_m = 30.0
+    wall = np.array([[3.0, y, z] for y in np.arange(-3, 3.01, 0.1)
+                     for z in np.arange(0.0, 5.01, 0.1)])
+    pts = np.vstack([flat_ground(), wall]).astype(np.float32)
+    model = motion_model(cfg, pts, Pose.from_xyz_yaw_pitch(0.0, 0.0, 1.6, 0.0, 0.0))
+    here, behind, beside = model.current, (5.0, 0.0, 1.6, 0.0, 0.0), (0.0, 2.0, 1.6, 0.0, 0.0)
+    assert model.is_free(behind) and model.is_free(beside)
+    assert not model.segment_free(here, behind)
+    assert model.segment_free(here, beside)
