@@ -23,7 +23,9 @@ from typing import Any
 
 import zenoh
 
+from mapper.integrate import voxel_first_points
 from mission.coverage import CoverageEvaluator
+from mission.metrics import suppression_audit
 from mission.record import MissionRecord
 from rovergate.config import MissionConfig, save_config
 from rovergate.keys import MODULES, Keys
@@ -152,7 +154,7 @@ class Hub:
         deadline = time.monotonic() + self.cfg.ready_timeout_s
         while time.monotonic() < deadline:
             self.check_processes()
-            for reply in self.session.get(key, timeout=30.0):
+            for reply in self.session.get(key, timeout=30.0, attachment="mission"):
                 if reply.ok is not None:
                     return xyz(check_and_decode("truth_surface", reply.ok)[1])
             time.sleep(0.2)
@@ -219,8 +221,13 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
         hub.launch(config_path)
         hub.wait_ready()
         log.info("all modules ready: %s", ", ".join(MODULES))
-        evaluator = CoverageEvaluator(hub.query_truth_surface(),
-                                      cfg.eval.tau_frac * cfg.scene.d_scene_m)
+        truth_surface = hub.query_truth_surface()
+        evaluator = CoverageEvaluator(truth_surface, cfg.eval.tau_frac * cfg.scene.d_scene_m)
+        # Evaluation only: the reference occupancy O* (as the simulator derives it) to audit
+        # what the gate withheld.
+        audit_ref = (voxel_first_points(truth_surface, cfg.mapper.voxel_m)
+                     if cfg.condition == "gated" else None)
+        delta_m = cfg.gate.oracle_delta_frac * cfg.scene.d_scene_m
         t_step = time.perf_counter()
         for t in range(cfg.steps + 1):
             cov = record.coverage[-1] if record.coverage else 0.0
@@ -234,9 +241,13 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
             if t > 0:
                 predicted = hub.wait_message("predicted", t - 1)
                 planner_map = hub.wait_message("planner_map", t - 1)
-                kept = int((planner_map.points["source"] == Source.PREDICTED).sum())
+                kept_points = planner_map.points[planner_map.points["source"] == Source.PREDICTED]
+                kept = len(kept_points)
                 record.predicted_points.append(len(predicted))
                 record.planner_predicted.append(kept)
+                if audit_ref is not None:
+                    record.suppressed_fp.append(suppression_audit(
+                        xyz(predicted), xyz(kept_points), audit_ref, delta_m)[1])
                 # The map message has no count of what the gate withheld; under the gate,
                 # what it withheld is what it did not pass on.
                 record.suppressed.append(len(predicted) - kept if cfg.condition == "gated"

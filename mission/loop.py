@@ -8,6 +8,7 @@ from gate.conditions import get_condition
 from gate.gate import Gate
 from mapper.mapper import Mapper
 from mission.coverage import CoverageEvaluator
+from mission.metrics import suppression_audit
 from mission.record import MissionRecord
 from planner.planner import make_planner
 from rover_sim.sim import RoverSim
@@ -26,6 +27,9 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
         gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
         planner = make_planner(cfg)
         evaluator = CoverageEvaluator(sim.truth_surface(), cfg.eval.tau_frac * cfg.scene.d_scene_m)
+        # Evaluation only: which of the points the gate withheld were true false positives.
+        audit_ref = sim.truth_occupancy() if cfg.condition == "gated" else None
+        delta_m = cfg.gate.oracle_delta_frac * cfg.scene.d_scene_m
 
         def timed(stage, fn, *args):
             t0 = time.perf_counter()
@@ -53,8 +57,11 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
             occupancy = timed("gate", gate.step, mapped, frame.T_map_camera, frame.intrinsics)
             record.suppressed.append(occupancy.suppressed)
             record.predicted_points.append(len(mapped.predicted))
-            record.planner_predicted.append(
-                int((occupancy.points["source"] == Source.PREDICTED).sum()))
+            kept = occupancy.points[occupancy.points["source"] == Source.PREDICTED]
+            record.planner_predicted.append(len(kept))
+            if audit_ref is not None:
+                record.suppressed_fp.append(
+                    suppression_audit(xyz(mapped.predicted), xyz(kept), audit_ref, delta_m)[1])
             path = timed("plan", planner.plan, t, occupancy, frame.T_map_base).path
             record.paths.append(path)
     finally:

@@ -26,6 +26,8 @@ class MissionRecord:
     """Wall time of each step of the loop, as the mission clock saw it."""
     suppressed: list[int] = field(default_factory=list)
     """Predicted points the gate withheld from the planner at each step 0..T-1."""
+    suppressed_fp: list[int] = field(default_factory=list)
+    """Of those, the true false positives (evaluation only; gated runs)."""
     predicted_points: list[int] = field(default_factory=list)
     """Size of the thresholded prediction O_hat_t at each step 0..T-1."""
     planner_predicted: list[int] = field(default_factory=list)
@@ -70,4 +72,7 @@ class MissionRecord:
             "predicted_points_per_step": self.predicted_points,
             "planner_predicted_per_step": self.planner_predicted,
             "suppressed_per_step": self.suppressed,
+            "suppressed_fp_per_step": self.suppressed_fp,
+            "suppressed_fp_share": (sum(self.suppressed_fp) / sum(self.suppressed)
+                                    if self.suppressed_fp and sum(self.suppressed) else None),
         }

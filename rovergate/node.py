@@ -126,6 +126,10 @@ class ModuleNode:
         encoding = cdr_encoding(topic)
 
         def on_query(query: zenoh.Query) -> None:
+            # Every answer is logged with who asked (the requester names itself in the
+            # attachment): the record that ground truth reaches only those allowed it.
+            who = query.attachment.to_string() if query.attachment is not None else "unnamed"
+            self.log.info("served %s to %s", key, who)
             query.reply(key, encode(topic, make_value()), encoding=encoding)
         self._queryables.append(self.session.declare_queryable(key, on_query))
 
@@ -134,7 +138,8 @@ class ModuleNode:
         key = self.keys.key(topic)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            for reply in self.session.get(key, timeout=min(10.0, timeout_s)):
+            for reply in self.session.get(key, timeout=min(10.0, timeout_s),
+                                          attachment=self.name):
                 if reply.ok is not None:
                     try:
                         return check_and_decode(topic, reply.ok)[1]

@@ -159,6 +159,51 @@ def test_gated_condition_withholds_part_of_the_prediction(tmp_path: Path):
     assert all(k + h == n for n, k, h in zip(pred, kept, held, strict=True))
     assert held[0] == 0  # one frustum is fewer than K = 2
     assert sum(held) > 0
+    # The evaluator's audit: of the withheld points, how many were true false positives.
+    fp = m["suppressed_fp_per_step"]
+    assert len(fp) == len(held) and all(0 <= f <= h for f, h in zip(fp, held, strict=True))
+    assert m["suppressed_fp_share"] == sum(fp) / sum(held)
+
+
+def test_ground_truth_reaches_only_the_evaluator(tmp_path: Path):
+    """Under obs, learned and gated, nothing from <ns>/truth/... reaches any module but the
+    mission's evaluator; under an oracle condition the gate gets the reference too.
+
+    Truth travels only as answers of the simulator's queryables, and the simulator logs every
+    answer with the requester's name; a spy session subscribed to <ns>/truth/** sees that
+    nothing is ever published there either."""
+    served = {}
+    for condition in ("obs", "learned", "gated", "learned-fp"):
+        port = free_loopback_port()
+        out = tmp_path / condition
+        spied: list[str] = []
+        mission = subprocess.Popen(
+            [*ROVERGATE, "run", "--condition", condition, "--steps", "2", "--no-progress",
+             "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        session = None
+        for _ in range(100):
+            try:
+                session = zenoh.open(conf)
+                break
+            except zenoh.ZError:
+                time.sleep(0.2)
+        assert session is not None, "could not connect to the mission"
+        sub = session.declare_subscriber("rover/truth/**", spied.append)
+        _, err = mission.communicate(timeout=240)
+        sub.undeclare()
+        session.close()
+        assert mission.returncode == 0, err[-3000:]
+        assert [str(s.key_expr) for s in spied] == [], condition
+        log = (out / "logs" / "sim.log").read_text()
+        served[condition] = sorted(line.split("served ")[1] for line in log.splitlines()
+                                   if "served " in line)
+    evaluator_only = ["rover/truth/surface_samples to mission"]
+    assert served["obs"] == served["learned"] == served["gated"] == evaluator_only
+    assert served["learned-fp"] == sorted(evaluator_only + ["rover/truth/occupancy to gate"])
 
 
 def test_truth_condition_runs_and_is_reproducible(tmp_path: Path):
