@@ -15,8 +15,10 @@ from mission.record import MissionRecord  # noqa: E402
 from rovergate.config import MissionConfig  # noqa: E402
 
 
-def write_report(cfg: MissionConfig, record: MissionRecord, out: Path) -> dict:
-    """Write every output file of a run into ``out``; returns the metrics."""
+def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bool = True
+                 ) -> dict:
+    """Write every output file of a run into ``out`` (``plots``: with its two pictures);
+    returns the metrics."""
     out.mkdir(parents=True, exist_ok=True)
     metrics = record.metrics()
     metrics.update(scene=cfg.scene.name, platform=cfg.platform, start=cfg.start, seed=cfg.seed,
@@ -34,6 +36,8 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path) -> dict:
                        repr(e.path_length_m), repr(e.pose_error_m)] if e else ["", "", "", "",
                                                                                ""])
             w.writerow([t, repr(c), *motion])
+    if not plots:
+        return metrics
 
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(range(len(record.coverage)), record.coverage, lw=2)

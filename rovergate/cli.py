@@ -28,6 +28,8 @@ commands:
   scenes    list the scenes with their sizes and starts (--render DIR: a picture of each)
   train     reproduce the shipped occupancy model from nothing (about 35 min on 2 CPU cores)
   eval-model  precision / recall of the learned occupancy on held-out scenes
+  study     the paper's controlled study: every (scene, start, condition, repetition) in
+            parallel workers, resumable; writes runs.csv, table1.md, table2.md and plots
 
 `rovergate COMMAND --help` lists the flags."""
 
@@ -111,6 +113,12 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(eval_main(tyro.cli(EvalModelConfig, args=argv[1:],
                                             prog="rovergate eval-model",
                                             description=EvalModelConfig.__doc__)))
+    if argv and argv[0] == "study":
+        from mission.study import StudyConfig
+        from mission.study import main as study_main
+        raise SystemExit(study_main(tyro.cli(StudyConfig, args=argv[1:],
+                                             prog="rovergate study",
+                                             description=StudyConfig.__doc__)))
     command, cfg = parse(argv)
     # Ctrl-C and SIGTERM both mean: stop cleanly at the next wait (rovergate.node.STOP).
     # Installed explicitly, because a process started in the background may inherit an

@@ -1,0 +1,254 @@
+"""``rovergate study``: the paper's controlled study, every run closed loop from scratch.
+
+Each (scene, start, condition, repetition) is one mission of ``--steps`` planning steps, run in
+one process (:func:`mission.loop.run_in_process`, which gives the same numbers as the process
+set) by a pool of worker processes, one torch thread each. Repetition r runs with seed r, so
+repetitions differ in the planner's candidate draws and OMPL's sampling, and the same seed
+gives the same run in any worker.
+
+Layout of ``--out``::
+
+    study.json          the study's settings (a re-run must match them)
+    runs/<id>/          one finished run: metrics.json, coverage.csv, config.json
+    runs.csv            one row per finished run
+    table1.md           the paper's Table 1 layout, with paired bootstrap 95% CIs
+    table2.md           the paper's Table 2 layout: learned against gated, every start
+    summary.json        the tables' figures, the study's wall time and per-stage medians
+    coverage_<condition>.png  every run's coverage curve, with the mean
+
+Resuming: a run directory appears only complete (it is written under a temporary name and
+renamed), so a re-run with the same ``--out`` skips every finished run, and a killed study
+loses at most the runs that were in flight.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from tqdm import tqdm
+
+from gate.conditions import get_condition
+from rover_sim.catalog import START_NAMES, SUITE, load_scene, resolve_scene
+from rovergate.config import MissionConfig, from_dict, to_dict
+from rovergate.logs import init_logging
+
+log = logging.getLogger("rovergate.study")
+
+#: The paper's order of planner-facing conditions, then the filter.
+PAPER_ORDER = ("obs", "learned-fp", "learned", "learned+fn", "truth", "gated")
+
+
+@dataclass
+class StudyConfig:
+    """The controlled study (paper, Section 4) and its extension to every start."""
+
+    scenes: tuple[str, ...] = SUITE
+    """Scenes: suite names or mesh files (`rovergate scenes` lists the suite)."""
+    starts: tuple[str, ...] = START_NAMES
+    """Named starts of every scene."""
+    conditions: tuple[str, ...] = PAPER_ORDER
+    """Planner-facing conditions (`learned` is the baseline of every delta and of S70, so it
+    is always run)."""
+    reps: int = 1
+    """Repetitions of every condition (repetition r runs with seed r)."""
+    filter_reps: int = 3
+    """Repetitions of `learned` and `gated` on every start, for Table 2 (at least --reps)."""
+    steps: int = 100
+    """Planning steps per run (T; each run records T + 1 coverage values)."""
+    platform: str = "flyer"
+    """The paper's setting is the free-flying camera; `rover` is the extension."""
+    workers: int = 0
+    """Worker processes (0: one per CPU core). Each runs one mission at a time."""
+    torch_threads: int = 1
+    """Torch threads per worker."""
+    out: Path = Path("runs/study")
+    """Directory of the study (see the module docstring); re-running resumes it."""
+    bootstrap: int = 10_000
+    """Paired bootstrap resamples for the confidence intervals."""
+    progress: bool = True
+    """Show a progress bar with an ETA."""
+    mission: MissionConfig = field(default_factory=MissionConfig)
+    """Every other mission setting (sensing, planner, gate, ...), as `rovergate run` takes
+    them; scene, start, condition, seed, steps and platform come from the study."""
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    scene: str
+    start: str
+    condition: str
+    rep: int
+
+    @property
+    def id(self) -> str:
+        scene = Path(self.scene).stem if "/" in self.scene or "." in self.scene else self.scene
+        return f"{scene}-{self.start}-{self.condition}-r{self.rep}"
+
+
+def check_study(cfg: StudyConfig) -> StudyConfig:
+    """Validate the settings; one line for each kind of mistake. Returns them resolved."""
+    if not cfg.scenes or not cfg.starts or not cfg.conditions:
+        raise SystemExit("error: --scenes, --starts and --conditions each need at least one "
+                         "value")
+    for c in cfg.conditions:
+        get_condition(c)
+    conditions = tuple(dict.fromkeys(("learned", *cfg.conditions)))  # the baseline first
+    conditions = tuple(c for c in PAPER_ORDER if c in conditions) + tuple(
+        c for c in conditions if c not in PAPER_ORDER)
+    if cfg.reps < 1 or cfg.filter_reps < 0 or cfg.steps < 1:
+        raise SystemExit(f"error: --reps and --steps must be at least 1 and --filter-reps at "
+                         f"least 0; got {cfg.reps}, {cfg.steps}, {cfg.filter_reps}")
+    for name in cfg.scenes:
+        scene = load_scene(replace(cfg.mission.scene, name=name, d_scene_m=0.0,
+                                   bounds_m=(0,) * 6))
+        for s in cfg.starts:
+            if s not in scene.starts:
+                raise SystemExit(f"error: scene {name!r} has no start {s!r}; its starts are "
+                                 f"{', '.join(scene.starts)}")
+    workers = cfg.workers or os.cpu_count() or 1
+    return replace(cfg, conditions=conditions, workers=workers)
+
+
+def run_specs(cfg: StudyConfig) -> list[RunSpec]:
+    """Every run of the study, in a fixed order."""
+    specs = []
+    for scene in cfg.scenes:
+        for start in cfg.starts:
+            for condition in cfg.conditions:
+                reps = cfg.reps
+                if condition in ("learned", "gated"):
+                    reps = max(reps, cfg.filter_reps)
+                specs.extend(RunSpec(scene, start, condition, r) for r in range(reps))
+    return specs
+
+
+def mission_config(cfg: StudyConfig, spec: RunSpec, run_dir: Path) -> MissionConfig:
+    m = from_dict(MissionConfig, to_dict(cfg.mission))  # a deep copy
+    m.scene = replace(m.scene, name=spec.scene, d_scene_m=0.0, bounds_m=(0,) * 6)
+    m.start, m.condition, m.seed, m.steps = spec.start, spec.condition, spec.rep, cfg.steps
+    m.platform, m.out, m.in_process, m.progress = cfg.platform, run_dir, True, False
+    return m
+
+
+# ----------------------------------------------------------------------------- workers
+
+def _init_worker(threads: int) -> None:
+    import torch
+    torch.set_num_threads(threads)
+    logging.getLogger().setLevel(logging.WARNING)  # the study's log is the progress bar
+
+
+def _run_one(job: tuple[dict, str, str]) -> tuple[str, float, str | None]:
+    """Run one mission into a temporary directory and rename it into place when complete."""
+    from mission.loop import run_in_process
+    from mission.report import write_report
+    from rovergate.config import save_config
+    mission, run_id, runs_dir = job
+    cfg = from_dict(MissionConfig, mission)
+    final = Path(runs_dir) / run_id
+    tmp = Path(runs_dir) / f".{run_id}.tmp-{os.getpid()}"
+    t0 = time.perf_counter()
+    try:
+        resolve_scene(cfg.scene)
+        cfg.out = tmp
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        record = run_in_process(cfg)
+        cfg.out = final
+        save_config(cfg, tmp / "config.json")
+        write_report(cfg, record, tmp, plots=False)
+        os.replace(tmp, final)
+    except Exception as exc:  # a failed run is reported, and the study goes on
+        shutil.rmtree(tmp, ignore_errors=True)
+        return run_id, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
+    return run_id, time.perf_counter() - t0, None
+
+
+# ----------------------------------------------------------------------------- the study
+
+def _settings(cfg: StudyConfig) -> dict:
+    """What must match for a study directory to be resumed."""
+    d = to_dict(cfg)
+    for k in ("workers", "torch_threads", "out", "bootstrap", "progress"):
+        d.pop(k)
+    return d
+
+
+def main(cfg: StudyConfig) -> int:
+    init_logging("study")
+    cfg = check_study(cfg)
+    out = Path(cfg.out)
+    runs_dir = out / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    settings_path = out / "study.json"
+    settings = _settings(cfg)
+    if settings_path.exists():
+        try:
+            saved = json.loads(settings_path.read_text())
+        except ValueError:
+            raise SystemExit(f"error: {settings_path} is not valid JSON; delete it, or give "
+                             "--out a new directory") from None
+        if saved.get("settings") != settings:
+            raise SystemExit(f"error: {out} holds a study with other settings; give --out a "
+                             f"new directory, or delete {out} to start this one there")
+        sessions = saved.get("sessions", [])
+    else:
+        sessions = []
+    for leftover in runs_dir.glob(".*.tmp-*"):  # runs that were in flight when killed
+        shutil.rmtree(leftover, ignore_errors=True)
+
+    specs = run_specs(cfg)
+    done = {p.name for p in runs_dir.iterdir() if (p / "metrics.json").exists()}
+    todo = [s for s in specs if s.id not in done]
+    log.info("%d runs: %d finished before, %d to run on %d workers (out: %s)", len(specs),
+             len(specs) - len(todo), len(todo), cfg.workers, out)
+    t0 = time.perf_counter()
+    session = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "runs": 0, "wall_s": 0.0,
+               "workers": cfg.workers}
+    sessions.append(session)
+
+    def save_progress() -> None:
+        session["wall_s"] = time.perf_counter() - t0
+        settings_path.write_text(json.dumps({"settings": settings, "sessions": sessions},
+                                            indent=1) + "\n")
+
+    save_progress()
+    failures: list[tuple[str, str]] = []
+    if todo:
+        jobs = [(to_dict(mission_config(cfg, s, runs_dir / s.id)), s.id, str(runs_dir))
+                for s in todo]
+        bar = tqdm(total=len(specs), initial=len(specs) - len(todo), desc="study", unit="run",
+                   disable=not cfg.progress, file=sys.stderr, smoothing=0.05)
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(cfg.workers, initializer=_init_worker,
+                      initargs=(cfg.torch_threads,)) as pool:
+            for run_id, seconds, error in pool.imap_unordered(_run_one, jobs):
+                bar.update(1)
+                if error:
+                    failures.append((run_id, error))
+                    log.error("run %s failed after %.0f s: %s", run_id, seconds, error)
+                else:
+                    session["runs"] += 1
+                    bar.set_postfix_str(f"{run_id} {seconds:.0f}s")
+                save_progress()
+        bar.close()
+    save_progress()
+
+    from mission.tables import write_tables
+    summary = write_tables(cfg, specs, out)
+    wall = sum(s["wall_s"] for s in sessions)
+    log.info("study: %d runs in %.1f min of wall time over %d session(s); tables in %s",
+             summary["runs"], wall / 60, len(sessions), out)
+    if failures:
+        log.error("%d runs failed (re-run the same command to retry them): %s", len(failures),
+                  ", ".join(r for r, _ in failures))
+        return 1
+    return 0

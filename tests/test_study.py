@@ -1,0 +1,164 @@
+"""The study: its metrics on hand-made curves, its tables on hand-made runs, a smoke study
+through the command line, and resumption after the study is killed mid-way."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mission.metrics import auc, final_coverage, s70, suppression_audit
+from mission.tables import bootstrap_ci, table1, table2
+
+ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
+
+
+def test_final_coverage_auc_and_s70_on_hand_made_curves():
+    curve = [0.0, 0.2, 0.4, 0.6, 0.8]
+    assert final_coverage(curve) == 0.8
+    assert auc(curve) == pytest.approx(0.4)  # a straight ramp: half its end value
+    assert auc([0.5] * 11) == pytest.approx(0.5)
+    # 70% of a baseline of 0.8 is 0.56: first reached at step 3.
+    assert s70(curve, 0.8) == (3, True)
+    assert s70(curve, 0.0) == (0, True)
+    # Never reached within T = 4 steps: counted as T + 1 = 5, flagged.
+    assert s70(curve, 2.0) == (5, False)
+
+
+def test_suppression_audit_counts_withheld_points_and_true_false_positives():
+    reference = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]], dtype=np.float32)
+    predicted = np.array([[0.1, 0.0, 0.0],    # near the true surface, kept
+                          [10.2, 0.0, 0.0],   # near it, withheld: not a false positive
+                          [5.0, 5.0, 5.0],    # far from it, withheld: a false positive
+                          [6.0, 5.0, 5.0]],   # far, kept
+                         dtype=np.float32)
+    kept = predicted[[0, 3]]
+    assert suppression_audit(predicted, kept, reference, delta_m=0.5) == (2, 1)
+    assert suppression_audit(predicted, predicted, reference, delta_m=0.5) == (0, 0)
+    assert suppression_audit(predicted[:0], kept, reference, delta_m=0.5) == (0, 0)
+
+
+def test_bootstrap_interval_brackets_the_mean_and_is_seeded():
+    x = np.array([0.1, 0.3, -0.2, 0.4, 0.0])
+    lo, hi = bootstrap_ci(x, 2000)
+    assert lo < x.mean() < hi and (lo, hi) == bootstrap_ci(x, 2000)
+    assert bootstrap_ci(np.array([0.2]), 100) == (0.2, 0.2)
+
+
+def _row(scene, start, condition, rep, c_t, auc_, s70_, reached=True, held=None, share=None):
+    return {"scene": scene, "start": start, "condition": condition, "rep": rep,
+            "final_coverage": c_t, "auc": auc_, "s70": s70_, "s70_reached": reached,
+            "suppressed_per_step": held, "suppressed_fp_share": share}
+
+
+def test_table1_pairs_runs_and_splits_low_and_high_starts():
+    rows = [
+        _row("s", "a", "learned", 0, 0.60, 0.40, 40),   # low start
+        _row("s", "a", "obs", 0, 0.70, 0.45, 30),
+        _row("s", "b", "learned", 0, 0.90, 0.70, 20),   # high start
+        _row("s", "b", "obs", 0, 0.80, 0.60, 31, reached=False),
+        _row("s", "c", "learned", 0, 0.80, 0.60, 25),   # neither
+        _row("s", "c", "obs", 0, 0.80, 0.60, 25),
+    ]
+    text, fig = table1(rows, ("obs", "learned"), 1000, steps=30)
+    assert fig["learned"]["All"]["final_coverage"]["mean"] == pytest.approx(np.mean([.6, .9, .8]))
+    assert fig["obs"]["Low"]["final_coverage"]["mean"] == pytest.approx(0.10)
+    assert fig["obs"]["High"]["final_coverage"]["mean"] == pytest.approx(-0.10)
+    assert fig["obs"]["High"]["s70"]["mean"] == pytest.approx(11.0)
+    assert fig["obs"]["All"]["final_coverage"]["n"] == 3
+    assert fig["obs"]["All"]["s70_unreached"] == 1
+    assert "| Obs. only | All (n=3) | +0.000" in text and "Low (n=1)" in text
+
+
+def test_table2_gives_mean_and_std_over_repetitions_per_start():
+    rows = []
+    for rep, (lc, gc) in enumerate([(0.5, 0.6), (0.7, 0.7), (0.6, 0.8)]):
+        rows += [_row("s", "a", "learned", rep, lc, 0, 0),
+                 _row("s", "a", "gated", rep, gc, 0, 0, held=10.0, share=0.5)]
+    text, fig = table2(rows, 1000)
+    assert "| s/a | 0.600 ± 0.100 | 0.700 ± 0.100 | +0.100 [" in text
+    assert fig["starts"]["s/a"]["delta"]["mean"] == pytest.approx(0.1)
+    assert fig["starts"]["s/a"]["delta"]["n"] == 3
+
+
+def study(out: Path, *extra: str, **kw) -> subprocess.Popen:
+    return subprocess.Popen(
+        [*ROVERGATE, "study", "--scenes", "arch_field", "--starts", "a", "b", "--conditions",
+         "obs", "learned", "gated", "--filter-reps", "2", "--steps", "3", "--bootstrap", "200",
+         "--no-progress", "--out", str(out), *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def results(out: Path) -> list[dict]:
+    """runs.csv without the columns that time the run."""
+    with open(out / "runs.csv") as f:
+        return [{k: v for k, v in r.items() if not k.endswith("_s")} for r in csv.DictReader(f)]
+
+
+def test_smoke_study_writes_every_output_and_is_the_same_in_any_worker(tmp_path: Path):
+    one = study(tmp_path / "one", "--workers", "1")
+    two = study(tmp_path / "two", "--workers", "2")
+    for p in (one, two):
+        _, err = p.communicate(timeout=400)
+        assert p.returncode == 0, err[-3000:]
+    out = tmp_path / "two"
+    for name in ("runs.csv", "table1.md", "table2.md", "summary.json", "study.json",
+                 "coverage_obs.png", "coverage_learned.png", "coverage_gated.png"):
+        assert (out / name).stat().st_size > 0, name
+    rows = results(out)
+    # 2 starts x (obs once, learned and gated twice each).
+    assert len(rows) == 10
+    assert {(r["condition"], r["rep"]) for r in rows} == {
+        ("obs", "0"), ("learned", "0"), ("learned", "1"), ("gated", "0"), ("gated", "1")}
+    assert all(0 < float(r["final_coverage"]) <= 1 for r in rows)
+    table = (out / "table1.md").read_text()
+    assert "Learned (abs.)" in table and "Obs. only" in table and "[" in table
+    assert "arch_field/a" in (out / "table2.md").read_text()
+    # Same seeds, same runs, whichever worker ran them and in whichever order.
+    assert results(tmp_path / "one") == rows
+
+
+def test_a_killed_study_resumes_and_loses_only_runs_in_flight(tmp_path: Path):
+    out = tmp_path / "study"
+    p = study(out, "--workers", "1", start_new_session=True)
+    runs = out / "runs"
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        finished = [d for d in runs.glob("*") if (d / "metrics.json").exists()] \
+            if runs.exists() else []
+        if len(finished) >= 3:
+            break
+        time.sleep(0.2)
+    os.killpg(p.pid, signal.SIGKILL)  # the study and its workers, as a kill -9 of the job
+    p.wait()
+    before = {d.name: (d / "metrics.json").stat().st_mtime_ns for d in runs.iterdir()
+              if (d / "metrics.json").exists()}
+    assert 3 <= len(before) < 10
+    resumed = study(out, "--workers", "2")
+    _, err = resumed.communicate(timeout=400)
+    assert resumed.returncode == 0, err[-3000:]
+    assert f"{len(before)} finished before, {10 - len(before)} to run" in err
+    assert not list(runs.glob(".*"))  # the in-flight leftovers are gone
+    assert len(results(out)) == 10
+    # The finished runs were kept, not redone.
+    assert {n: (runs / n / "metrics.json").stat().st_mtime_ns for n in before} == before
+    reference = study(tmp_path / "whole", "--workers", "2")
+    _, err = reference.communicate(timeout=400)
+    assert reference.returncode == 0, err[-3000:]
+    assert results(out) == results(tmp_path / "whole")
+
+
+def test_study_refuses_bad_settings_in_one_line(tmp_path: Path):
+    r = subprocess.run([*ROVERGATE, "study", "--starts", "z", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "has no start 'z'" in r.stderr
+    r = subprocess.run([*ROVERGATE, "study", "--conditions", "psychic", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "unknown condition 'psychic'" in r.stderr
