@@ -46,13 +46,21 @@ class ObservationGate:
         self._t_cam_map.append(-R @ T_map_camera[:3, 3])
         self._intrinsics.append(intrinsics)
 
-    def exposure_counts(self, points_map: np.ndarray) -> np.ndarray:
-        """n_t(x): (N,) int32 number of recorded frustums that contain each point."""
+    def exposure_counts(self, points_map: np.ndarray, stop_at: int | None = None) -> np.ndarray:
+        """n_t(x): (N,) int32 number of recorded frustums that contain each point.
+
+        ``stop_at``: a point's count may stop growing once it reaches this many (only whether
+        n_t >= K matters to the filter), which lets the count skip it in later frustums."""
         counts = np.zeros(len(points_map), dtype=np.int32)
         if len(points_map) == 0 or not self._R_cam_map:
             return counts
-        p = points_map.astype(np.float64)
+        active = np.arange(len(points_map))
         for lo in range(0, self.n_frustums, _CHUNK_FRUSTUMS):
+            if stop_at is not None:
+                active = active[counts[active] < stop_at]
+                if len(active) == 0:
+                    break
+            p = points_map[active].astype(np.float64)
             R = np.stack(self._R_cam_map[lo:lo + _CHUNK_FRUSTUMS])     # (F, 3, 3)
             t = np.stack(self._t_cam_map[lo:lo + _CHUNK_FRUSTUMS])     # (F, 3)
             ks = self._intrinsics[lo:lo + _CHUNK_FRUSTUMS]
@@ -69,7 +77,7 @@ class ObservationGate:
             u = fx * pc[..., 0] / zs + cx
             v = fy * pc[..., 1] / zs + cy
             inside = in_range & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
-            counts += inside.sum(axis=0, dtype=np.int32)
+            counts[active] += inside.sum(axis=0, dtype=np.int32)
         return counts
 
     def support_distance(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
@@ -84,6 +92,8 @@ class ObservationGate:
         """(N,) bool mask of U_t: exposed at least K times with no support within epsilon."""
         if len(points_map) == 0:
             return np.zeros(0, dtype=bool)
-        counts = self.exposure_counts(points_map)
-        return (counts >= self.k) & (self.support_distance(points_map, surface_map)
-                                     > self.epsilon_m)
+        # Supported points are never in U_t: count exposures only for the others.
+        out = self.support_distance(points_map, surface_map) > self.epsilon_m
+        candidates = np.flatnonzero(out)
+        out[candidates] = self.exposure_counts(points_map[candidates], stop_at=self.k) >= self.k
+        return out

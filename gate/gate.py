@@ -32,11 +32,14 @@ class OracleTags:
     """(K, 3) float32 reference points with no prediction within delta."""
 
 
-def oracle_tags(predicted_xyz: np.ndarray, reference_xyz: np.ndarray, delta_m: float) -> OracleTags:
-    """Tag FP_t and FN_t as the paper does, at tolerance delta."""
+def oracle_tags(predicted_xyz: np.ndarray, reference_xyz: np.ndarray, delta_m: float,
+                reference_tree: cKDTree | None = None) -> OracleTags:
+    """Tag FP_t and FN_t as the paper does, at tolerance delta (``reference_tree``: a k-d tree
+    of ``reference_xyz`` built once, as the reference does not change)."""
     if len(predicted_xyz) == 0:
         return OracleTags(np.zeros(0, dtype=bool), reference_xyz.copy())
-    d_pred, _ = cKDTree(reference_xyz).query(predicted_xyz, distance_upper_bound=delta_m)
+    tree = reference_tree if reference_tree is not None else cKDTree(reference_xyz)
+    d_pred, _ = tree.query(predicted_xyz, distance_upper_bound=delta_m)
     d_ref, _ = cKDTree(predicted_xyz).query(reference_xyz, distance_upper_bound=delta_m)
     return OracleTags(d_pred > delta_m, reference_xyz[d_ref > delta_m])
 
@@ -50,6 +53,7 @@ class Gate:
         if self.condition.needs_truth and reference_xyz is None:
             raise ValueError(f"condition {condition!r} needs the reference occupancy")
         self.reference_xyz = reference_xyz
+        self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
         self.delta_m = cfg.oracle_delta_frac * d_scene_m
         self.filter = ObservationGate(cfg.k, cfg.epsilon_frac * d_scene_m, sensor.min_range_m,
                                       sensor.max_range_m)
@@ -77,7 +81,7 @@ class Gate:
             keep = ~unsupported
             suppressed = int(unsupported.sum())
         elif name in ("learned-fp", "learned+fn"):
-            tags = oracle_tags(pred, self.reference_xyz, self.delta_m)
+            tags = oracle_tags(pred, self.reference_xyz, self.delta_m, self._reference_tree)
             if name == "learned-fp":
                 keep = ~tags.false_positive
             else:

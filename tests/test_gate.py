@@ -126,3 +126,23 @@ def test_oracle_tags_follow_the_paper():
     tags = oracle_tags(pred, ref, delta_m=0.1)
     assert tags.false_positive.tolist() == [False, True]
     assert tags.false_negative_points.tolist() == [[1.0, 0.0, 0.0]]
+
+
+def test_unsupported_equals_equation_4_computed_directly():
+    """The filter's shortcuts (supported points skip the count; counts stop at K) change
+    nothing: U_t is equation 4 evaluated on every point and every frustum."""
+    rng = np.random.default_rng(3)
+    g = make_gate(k=2, eps=0.8)
+    for yaw in rng.uniform(-0.6, 0.6, 40):  # more frustums than one chunk of the count
+        T = camera_looking_along_x()
+        c, s = np.cos(yaw), np.sin(yaw)
+        T[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ T[:3, :3]
+        g.add_frustum(T, K)
+    pts = rng.uniform([-2, -8, -3], [15, 8, 3], (3000, 3))
+    surface = rng.uniform([-2, -8, -3], [15, 8, 3], (500, 3))
+    counts = g.exposure_counts(pts)
+    d = np.min(np.linalg.norm(pts[:, None] - surface[None], axis=2), axis=1)
+    expected = (counts >= 2) & (d > 0.8)
+    assert 0 < expected.sum() < len(pts)
+    assert np.array_equal(g.unsupported(pts, surface), expected)
+    assert np.array_equal(np.minimum(g.exposure_counts(pts, stop_at=2), 2), np.minimum(counts, 2))
