@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from mission.record import MissionRecord  # noqa: E402
+from planner.planner import planner_name  # noqa: E402
 from rovergate.config import MissionConfig  # noqa: E402
 
 
@@ -22,7 +23,8 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
     out.mkdir(parents=True, exist_ok=True)
     metrics = record.metrics()
     metrics.update(scene=cfg.scene.name, platform=cfg.platform, start=cfg.start, seed=cfg.seed,
-                   condition=cfg.condition, d_scene_m=cfg.scene.d_scene_m,
+                   condition=cfg.condition, planner=planner_name(cfg),
+                   d_scene_m=cfg.scene.d_scene_m,
                    tau_m=cfg.eval.tau_frac * cfg.scene.d_scene_m)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     with open(out / "coverage.csv", "w", newline="") as f:

@@ -207,9 +207,17 @@ class BeamPlanner(Planner):
 PLANNERS: dict[str, type[Planner]] = {"beam": BeamPlanner, "greedy": GreedyPlanner}
 
 
+def planner_name(cfg: MissionConfig) -> str:
+    """The planner a mission runs: ``auto`` is the beam for the flyer, greedy for the rover."""
+    if cfg.planner.name == "auto":
+        return "beam" if cfg.platform == "flyer" else "greedy"
+    return cfg.planner.name
+
+
 def make_planner(cfg: MissionConfig) -> Planner:
     """The configured planner; an unknown name gives the list of valid ones."""
-    if cfg.planner.name not in PLANNERS:
+    name = planner_name(cfg)
+    if name not in PLANNERS:
         raise SystemExit(f"error: unknown planner {cfg.planner.name!r}; choose one of: "
-                         f"{', '.join(PLANNERS)}")
-    return PLANNERS[cfg.planner.name](cfg)
+                         f"auto, {', '.join(PLANNERS)}")
+    return PLANNERS[name](cfg)

@@ -160,9 +160,10 @@ class GateConfig:
 class PlannerConfig:
     """Next-best-view selection and motion planning."""
 
-    name: str = "beam"
-    """Planner: beam (the paper's long-horizon search, MAGICIAN-style) or greedy (the best
-    next view only)."""
+    name: str = "auto"
+    """Planner: beam (the paper's long-horizon search, MAGICIAN-style), greedy (the best next
+    view only), or auto: beam for the flyer, greedy for the rover (on the rover, the beam's
+    straight segments over known ground trap it: see the README)."""
     n_candidates: int = 32
     """Candidate poses sampled each step within the motion budget (the beam's first level)."""
     beam_width: int = 3
