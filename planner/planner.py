@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from planner.gain import GainField, render_gain
+from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
 from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
@@ -42,6 +42,22 @@ class Planner(abc.ABC):
     @abc.abstractmethod
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
         """The motion for step ``step``."""
+
+    def _setup(self, step: int, occupancy: PlannerMap, T_map_base: Pose
+               ) -> tuple[MotionModel, np.random.Generator, GainField]:
+        """One step's motion model, random generator (seeded by seed and step) and gain field,
+        all read from the same planner-facing map."""
+        cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
+        points = xyz(occupancy.points)
+        model = motion_model(cfg, points, T_map_base,
+                             predicted=occupancy.points["source"] == Source.PREDICTED)
+        rng = np.random.default_rng([cfg.seed, step])
+        k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
+                                      sensor.vfov_deg).scaled(pc.gain_resolution)
+        novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
+        field = GainField(points, novel, pc.gain_voxel_m, k, sensor.min_range_m,
+                          sensor.max_range_m, pc.zbuffer_tolerance_m)
+        return model, rng, field
 
 
 def novel_mask(occupancy: PlannerMap, observed_min_views: int, radius_m: float) -> np.ndarray:
@@ -77,18 +93,11 @@ class GreedyPlanner(Planner):
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
-        cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
-        points = xyz(occupancy.points)
-        model = motion_model(cfg, points, T_map_base,
-                             predicted=occupancy.points["source"] == Source.PREDICTED)
-        rng = np.random.default_rng([cfg.seed, step])
+        cfg, pc = self.cfg, self.cfg.planner
+        model, rng, field = self._setup(step, occupancy, T_map_base)
         candidates = model.sample(rng, pc.n_candidates)
-        cameras = [model.camera(c) for c in candidates]
-        k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
-                                      sensor.vfov_deg).scaled(pc.gain_resolution)
-        novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
-        gains = render_gain(points, novel, cameras, k, sensor.min_range_m, sensor.max_range_m,
-                            pc.zbuffer_tolerance_m, pc.gain_voxel_m)
+        gains = np.array([field.gain(field.visible(model.camera(c))) for c in candidates],
+                         dtype=np.int64)
         here = np.array(model.current[:3 if cfg.platform == "flyer" else 2])
         travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
         order = np.lexsort((travel, -gains))  # best gain first, then the nearer
@@ -143,16 +152,8 @@ class BeamPlanner(Planner):
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
-        cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
-        points = xyz(occupancy.points)
-        model = motion_model(cfg, points, T_map_base,
-                             predicted=occupancy.points["source"] == Source.PREDICTED)
-        rng = np.random.default_rng([cfg.seed, step])
-        k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
-                                      sensor.vfov_deg).scaled(pc.gain_resolution)
-        novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
-        field = GainField(points, novel, pc.gain_voxel_m, k, sensor.min_range_m,
-                          sensor.max_range_m, pc.zbuffer_tolerance_m)
+        cfg, pc = self.cfg, self.cfg.planner
+        model, rng, field = self._setup(step, occupancy, T_map_base)
         dims = 3 if cfg.platform == "flyer" else 2
 
         def extend(node: _Trajectory, n: int) -> list[_Trajectory]:
