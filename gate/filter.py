@@ -14,8 +14,8 @@ in front of the camera, between the sensor's minimum and maximum range. It ignor
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics
 
 _CHUNK_FRUSTUMS = 16
@@ -85,7 +85,7 @@ class ObservationGate:
         within epsilon: only the comparison with epsilon matters)."""
         if len(surface_map) == 0:
             return np.full(len(points_map), np.inf)
-        d, _ = cKDTree(surface_map).query(points_map, k=1, distance_upper_bound=self.epsilon_m)
+        d, _ = kdtree(surface_map).query(points_map, k=1, distance_upper_bound=self.epsilon_m)
         return d
 
     def unsupported(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:

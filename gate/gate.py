@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 from gate.conditions import get_condition
 from gate.filter import ObservationGate
 from rovergate.config import GateConfig, SensorConfig
+from rovergate.spatial import kdtree
 from rovergate.types import (
     PLANNER_DTYPE,
     CameraIntrinsics,
@@ -38,9 +39,9 @@ def oracle_tags(predicted_xyz: np.ndarray, reference_xyz: np.ndarray, delta_m: f
     of ``reference_xyz`` built once, as the reference does not change)."""
     if len(predicted_xyz) == 0:
         return OracleTags(np.zeros(0, dtype=bool), reference_xyz.copy())
-    tree = reference_tree if reference_tree is not None else cKDTree(reference_xyz)
+    tree = reference_tree if reference_tree is not None else kdtree(reference_xyz)
     d_pred, _ = tree.query(predicted_xyz, distance_upper_bound=delta_m)
-    d_ref, _ = cKDTree(predicted_xyz).query(reference_xyz, distance_upper_bound=delta_m)
+    d_ref, _ = kdtree(predicted_xyz).query(reference_xyz, distance_upper_bound=delta_m)
     return OracleTags(d_pred > delta_m, reference_xyz[d_ref > delta_m])
 
 

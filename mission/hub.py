@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+from scipy.spatial import cKDTree
 
 from mapper.integrate import voxel_first_points
 from mission.coverage import CoverageEvaluator
@@ -227,6 +228,7 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
         # what the gate withheld.
         audit_ref = (voxel_first_points(truth_surface, cfg.mapper.voxel_m)
                      if cfg.condition == "gated" else None)
+        audit_tree = cKDTree(audit_ref) if audit_ref is not None else None
         delta_m = cfg.gate.oracle_delta_frac * cfg.scene.d_scene_m
         t_step = time.perf_counter()
         for t in range(cfg.steps + 1):
@@ -247,7 +249,7 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
                 record.planner_predicted.append(kept)
                 if audit_ref is not None:
                     record.suppressed_fp.append(suppression_audit(
-                        xyz(predicted), xyz(kept_points), audit_ref, delta_m)[1])
+                        xyz(predicted), xyz(kept_points), audit_ref, delta_m, audit_tree)[1])
                 # The map message has no count of what the gate withheld; under the gate,
                 # what it withheld is what it did not pass on.
                 record.suppressed.append(len(predicted) - kept if cfg.condition == "gated"

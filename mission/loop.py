@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+from scipy.spatial import cKDTree
+
 from gate.conditions import get_condition
 from gate.gate import Gate
 from mapper.mapper import Mapper
@@ -29,6 +31,7 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
         evaluator = CoverageEvaluator(sim.truth_surface(), cfg.eval.tau_frac * cfg.scene.d_scene_m)
         # Evaluation only: which of the points the gate withheld were true false positives.
         audit_ref = sim.truth_occupancy() if cfg.condition == "gated" else None
+        audit_tree = cKDTree(audit_ref) if audit_ref is not None else None
         delta_m = cfg.gate.oracle_delta_frac * cfg.scene.d_scene_m
 
         def timed(stage, fn, *args):
@@ -61,7 +64,8 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
             record.planner_predicted.append(len(kept))
             if audit_ref is not None:
                 record.suppressed_fp.append(
-                    suppression_audit(xyz(mapped.predicted), xyz(kept), audit_ref, delta_m)[1])
+                    suppression_audit(xyz(mapped.predicted), xyz(kept), audit_ref, delta_m,
+                                      audit_tree)[1])
             path = timed("plan", planner.plan, t, occupancy, frame.T_map_base).path
             record.paths.append(path)
     finally:

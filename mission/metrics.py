@@ -46,12 +46,14 @@ def _rows(points: np.ndarray) -> np.ndarray:
 
 
 def suppression_audit(predicted_xyz: np.ndarray, kept_xyz: np.ndarray,
-                      reference_xyz: np.ndarray, delta_m: float) -> tuple[int, int]:
+                      reference_xyz: np.ndarray, delta_m: float,
+                      reference_tree: cKDTree | None = None) -> tuple[int, int]:
     """(withheld, withheld false positives) of one step.
 
     Withheld are the predicted points that did not reach the planner (``kept_xyz`` are the
     predicted points of the planner-facing map); a withheld point is a true false positive
-    when no reference point lies within ``delta_m`` (the paper's oracle tag).
+    when no reference point lies within ``delta_m`` (the paper's oracle tag). A mission passes
+    ``reference_tree``, a k-d tree of ``reference_xyz`` built once.
     """
     if len(predicted_xyz) == 0:
         return 0, 0
@@ -61,5 +63,6 @@ def suppression_audit(predicted_xyz: np.ndarray, kept_xyz: np.ndarray,
         return 0, 0
     if len(reference_xyz) == 0:
         return n, n
-    d, _ = cKDTree(reference_xyz).query(predicted_xyz[withheld], distance_upper_bound=delta_m)
+    tree = reference_tree if reference_tree is not None else cKDTree(reference_xyz)
+    d, _ = tree.query(predicted_xyz[withheld], distance_upper_bound=delta_m)
     return n, int(np.count_nonzero(d > delta_m))

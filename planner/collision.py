@@ -24,9 +24,9 @@ import math
 import fcl
 import numpy as np
 from scipy.ndimage import minimum_filter
-from scipy.spatial import cKDTree
 
 from rovergate.config import FlyerConfig, RoverConfig
+from rovergate.spatial import kdtree
 
 
 class OccupancyCollisionModel:
@@ -197,7 +197,7 @@ class FlyerCollisionModel:
         self.cfg = flyer
         self.ground = ground
         self.reach = flyer.radius_m + margin_m
-        self._tree = cKDTree(points_map) if len(points_map) else None
+        self._tree = kdtree(points_map) if len(points_map) else None
         self.checks = 0
 
     def altitude_band(self, x: float, y: float) -> tuple[float, float]:

@@ -12,11 +12,11 @@ import abc
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
+from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
 
 
@@ -77,7 +77,7 @@ def novel_mask(occupancy: PlannerMap, observed_min_views: int, radius_m: float) 
     if len(others):
         p = xyz(pts)
         if well.any():
-            d, _ = cKDTree(p[well]).query(p[others], distance_upper_bound=radius_m)
+            d, _ = kdtree(p[well]).query(p[others], distance_upper_bound=radius_m)
             novel[others] = d > radius_m
         else:
             novel[others] = True
