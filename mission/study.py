@@ -28,6 +28,7 @@ import logging
 import multiprocessing as mp
 import os
 import shutil
+import signal
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -182,8 +183,13 @@ def _settings(cfg: StudyConfig) -> dict:
     return d
 
 
+def _terminate(signum, frame) -> None:
+    raise KeyboardInterrupt  # leaving the pool's context terminates its workers
+
+
 def main(cfg: StudyConfig) -> int:
     init_logging("study")
+    signal.signal(signal.SIGTERM, _terminate)
     cfg = check_study(cfg)
     out = Path(cfg.out)
     runs_dir = out / "runs"
@@ -228,17 +234,23 @@ def main(cfg: StudyConfig) -> int:
         bar = tqdm(total=len(specs), initial=len(specs) - len(todo), desc="study", unit="run",
                    disable=not cfg.progress, file=sys.stderr, smoothing=0.05)
         ctx = mp.get_context("spawn")
-        with ctx.Pool(cfg.workers, initializer=_init_worker,
-                      initargs=(cfg.torch_threads,)) as pool:
-            for run_id, seconds, error in pool.imap_unordered(_run_one, jobs):
-                bar.update(1)
-                if error:
-                    failures.append((run_id, error))
-                    log.error("run %s failed after %.0f s: %s", run_id, seconds, error)
-                else:
-                    session["runs"] += 1
-                    bar.set_postfix_str(f"{run_id} {seconds:.0f}s")
-                save_progress()
+        try:
+            with ctx.Pool(cfg.workers, initializer=_init_worker,
+                          initargs=(cfg.torch_threads,)) as pool:
+                for run_id, seconds, error in pool.imap_unordered(_run_one, jobs):
+                    bar.update(1)
+                    if error:
+                        failures.append((run_id, error))
+                        log.error("run %s failed after %.0f s: %s", run_id, seconds, error)
+                    else:
+                        session["runs"] += 1
+                        bar.set_postfix_str(f"{run_id} {seconds:.0f}s")
+                    save_progress()
+        except KeyboardInterrupt:
+            bar.close()
+            save_progress()
+            log.error("stopped; the finished runs are kept: re-run the same command to resume")
+            return 130
         bar.close()
     save_progress()
 

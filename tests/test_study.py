@@ -162,3 +162,22 @@ def test_study_refuses_bad_settings_in_one_line(tmp_path: Path):
     r = subprocess.run([*ROVERGATE, "study", "--conditions", "psychic", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode != 0 and "unknown condition 'psychic'" in r.stderr
+
+
+def test_a_terminated_study_stops_its_workers(tmp_path: Path):
+    """SIGTERM (or Ctrl-C) on the study stops its worker processes too, not only itself."""
+    p = study(tmp_path / "s", "--workers", "2")
+    runs = tmp_path / "s" / "runs"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (runs.exists() and list(runs.glob(".*"))):
+        time.sleep(0.1)
+    assert list(runs.glob(".*")), "no run started"
+    # A run in flight is written under .<id>.tmp-<worker pid>.
+    workers = {int(d.name.rsplit("-", 1)[1]) for d in runs.glob(".*.tmp-*")}
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and "re-run the same command to resume" in err
+    time.sleep(1.0)
+    for pid in workers:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
