@@ -15,6 +15,7 @@ Layout of ``--out``::
     table2.md           the paper's Table 2 layout: learned against gated, every start
     summary.json        the tables' figures, the study's wall time and per-stage medians
     coverage_<condition>.png  every run's coverage curve, with the mean
+    coverage_curves.csv every run's per-step coverage, one row per run
 
 Resuming: a run directory appears only complete (it is written under a temporary name and
 renamed), so a re-run with the same ``--out`` skips every finished run, and a killed study

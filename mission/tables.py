@@ -78,6 +78,7 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             "suppressed_fp_share": m.get("suppressed_fp_share"),
             "wall_s": m["wall_s"], "median_step_s": m["median_step_s"],
             **{f"{k}_s": stage.get(k) for k in STAGES},
+            "coverage": m["coverage"],
         })
         curves.setdefault(s.condition, []).append(m["coverage"])
     rows.sort(key=lambda r: (r["scene"], r["start"], r["condition"], r["rep"]))
@@ -212,7 +213,8 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
     rows, curves = load_rows(specs, out / "runs")
     if rows:
         with open(out / "runs.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if k != "coverage"],
+                               extrasaction="ignore")
             w.writeheader()
             w.writerows(rows)
     t1, f1 = table1(rows, cfg.conditions, cfg.bootstrap, cfg.steps)
@@ -224,6 +226,14 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
     (out / "table2.md").write_text("# Table 2: final coverage, learned against the "
                                    "observation-gated filter\n\n" + header + t2)
     plots = plot_curves(curves, out)
+    if rows:
+        with open(out / "coverage_curves.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["scene", "start", "condition", "rep",
+                        *[f"c{t}" for t in range(len(rows[0]["coverage"]))]])
+            for r in rows:
+                w.writerow([r["scene"], r["start"], r["condition"], r["rep"],
+                            *[f"{c:.5f}" for c in r["coverage"]]])
     settings = json.loads((out / "study.json").read_text())
     stages = {k: float(np.median([r[f"{k}_s"] for r in rows if r[f"{k}_s"] is not None]))
               for k in STAGES if any(r[f"{k}_s"] is not None for r in rows)}

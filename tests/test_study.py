@@ -110,6 +110,7 @@ def test_smoke_study_writes_every_output_and_is_the_same_in_any_worker(tmp_path:
         assert p.returncode == 0, err[-3000:]
     out = tmp_path / "two"
     for name in ("runs.csv", "table1.md", "table2.md", "summary.json", "study.json",
+                 "coverage_curves.csv",
                  "coverage_obs.png", "coverage_learned.png", "coverage_gated.png"):
         assert (out / name).stat().st_size > 0, name
     rows = results(out)
