@@ -59,10 +59,15 @@ class Gate:
         self.filter = ObservationGate(cfg.k, cfg.epsilon_frac * d_scene_m, sensor.min_range_m,
                                       sensor.max_range_m)
 
+    def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics) -> None:
+        """Take up a past frame without composing its map (a restarted gate replaying its
+        past): its only state is the frustums so far, as U_t is recomputed every step."""
+        self.filter.add_frustum(T_map_camera.matrix(), intrinsics)
+
     def step(self, mapped: MapperOutput, T_map_camera: Pose,
              intrinsics: CameraIntrinsics) -> PlannerMap:
         """The planner-facing occupancy of step t (the frame of step t is counted first)."""
-        self.filter.add_frustum(T_map_camera.matrix(), intrinsics)
+        self.restore(T_map_camera, intrinsics)
         surface = mapped.surface
         s_xyz = xyz(surface)
         observed = make_cloud(s_xyz, PLANNER_DTYPE, source=Source.OBSERVED,

@@ -13,7 +13,7 @@ from rovergate.node import Input, ModuleNode
 from rovergate.types import MapperOutput, xyz
 
 
-def main(cfg: MissionConfig) -> int:
+def main(cfg: MissionConfig, resume_step: int = 0) -> int:
     log = init_logging("gate")
     condition = get_condition(cfg.condition)
     node = ModuleNode("gate", cfg.session,
@@ -39,4 +39,7 @@ def main(cfg: MissionConfig) -> int:
         node.publish("planner_map", occupancy)
         return {"gate": seconds}
 
-    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1)
+    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1,
+                    resume_step=resume_step,
+                    restore=lambda step, inputs: gate.restore(inputs["pose"], inputs["info"]),
+                    restore_inputs={"pose": Input("pose"), "info": Input("camera_info")})

@@ -68,16 +68,22 @@ class Mapper:
     def for_mission(cls, cfg: MissionConfig) -> Mapper:
         return cls(cfg.mapper, cfg.scene.bounds_m, mission_checkpoint(cfg))
 
-    def step(self, frame: SensorFrame) -> MapperOutput:
+    def integrate(self, frame: SensorFrame) -> None:
+        """Take one frame into S_t, the grid and the model's prediction, without reading the
+        products out (a restarted mapper replays its past frames with this)."""
         T_cam = frame.T_map_camera.matrix()
         pts = backproject(frame.depth_m, frame.intrinsics, T_cam)
         self.surface.integrate(pts)
+        if self.predictor is not None:
+            self.grid.integrate(frame.depth_m, frame.intrinsics, T_cam, returns_map=pts)
+            self.predictor.update(T_cam[:3, 3])
+
+    def step(self, frame: SensorFrame) -> MapperOutput:
+        self.integrate(frame)
         surface = make_cloud(self.surface.points, SURFACE_DTYPE, views=self.surface.views)
         if self.predictor is None:
             predicted = np.zeros(0, dtype=PREDICTED_DTYPE)
         else:
-            self.grid.integrate(frame.depth_m, frame.intrinsics, T_cam, returns_map=pts)
-            self.predictor.update(T_cam[:3, 3])
             p_xyz, prob = self.predictor.predicted()
             predicted = make_cloud(p_xyz, PREDICTED_DTYPE, probability=prob)
         return MapperOutput(frame.step, surface, predicted)

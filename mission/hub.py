@@ -7,6 +7,13 @@ for every module's liveliness token (never a fixed sleep), then ticks the missio
 ``<ns>/mission/status``: step t starts when the simulator receives the tick of step t and the
 path of step t-1. Coverage is evaluated here from ``<ns>/map/surface`` and the true surface
 samples that the simulator serves on ``<ns>/truth/surface_samples``.
+
+Health: the hub watches every module's process and liveliness token. When a module dies
+(or its token vanishes), the loop cannot go on without it, so the rover holds still: the
+simulator executes only the path of the step before, and none comes. The hub restarts the
+module with ``--resume-step`` (at most ``max_restarts`` times each); the module rebuilds its
+state from the hub's journal of past inputs (:mod:`mission.journal`) and the loop resumes at
+the same step, with the same numbers as if nothing had happened.
 """
 
 from __future__ import annotations
@@ -26,10 +33,11 @@ from scipy.spatial import cKDTree
 
 from mapper.integrate import voxel_first_points
 from mission.coverage import CoverageEvaluator
+from mission.journal import Journal
 from mission.metrics import suppression_audit
 from mission.record import MissionRecord
 from rovergate.config import MissionConfig, save_config
-from rovergate.keys import MODULES, Keys
+from rovergate.keys import MODULES, PROGRESS_TOPIC, Keys
 from rovergate.messages import MessageError, encode
 from rovergate.node import STOP, cdr_encoding, check_and_decode
 from rovergate.session import free_loopback_port, open_session
@@ -43,7 +51,30 @@ STAGE_MODULE = {"render": "sim", "execute": "sim", "integrate": "mapper", "gate"
 
 
 class MissionFailed(RuntimeError):
-    """A module died, or something the mission waited for did not come in time."""
+    """A module died more often than it may be restarted, or something the mission waited for
+    did not come in time."""
+
+
+@dataclasses.dataclass
+class RestartEvent:
+    """A module that died during the mission, and how the loop recovered."""
+
+    module: str
+    step: int
+    """The step the restarted module resumed at (the last one it had finished, redone)."""
+    reason: str
+    died_s: float
+    """When the death was noticed, seconds since the mission started."""
+    ready_s: float | None = None
+    """When the restarted module's liveliness token came back."""
+    resumed_s: float | None = None
+    """When the loop resumed: the restarted module's first output came in."""
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["death_to_ready_s"] = (self.ready_s - self.died_s) if self.ready_s else None
+        d["death_to_resume_s"] = (self.resumed_s - self.died_s) if self.resumed_s else None
+        return d
 
 
 class Hub:
@@ -64,9 +95,19 @@ class Hub:
         self.timings: queue.Queue = queue.Queue()
         self.dropped = 0
         self._cv = threading.Condition()
+        self.journal = Journal()
+        self.last_seen: dict[str, int] = {}
+        self.t0 = time.monotonic()
+        self.events: list[RestartEvent] = []
+        self.restarts: dict[str, int] = {m: 0 for m in MODULES}
+        self._resuming: dict[str, RestartEvent] = {}
         self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_sample(t))
-                      for t in self.WATCHED]
+                      for t in set(self.WATCHED) | (self.journal.topics - {"status"})]
+        self._journal_qs = [self.session.declare_queryable(self.keys.journal(t),
+                                                           self._on_journal_query(t))
+                            for t in self.journal.topics]
         self._alive: set[str] = set()
+        self._ever_alive: set[str] = set()
         self._alive_sub = self.session.liveliness().declare_subscriber(
             self.keys.alive_all, self._on_alive, history=True)
         self._status_pub = self.session.declare_publisher(
@@ -85,18 +126,51 @@ class Hub:
                 log.warning("dropped a message on %s: %s", self.keys.key(topic), exc)
                 return
             with self._cv:
+                if topic in self.journal.topics:
+                    self.journal.add(topic, step, sample.payload.to_bytes())
+                self.last_seen[topic] = max(step, self.last_seen.get(topic, -1))
                 if topic == "timing":
                     self.timings.put(value)
-                else:
+                elif topic in self.inbox:
                     self.inbox[topic][step] = value
+                for name, event in list(self._resuming.items()):
+                    if topic == PROGRESS_TOPIC[name] and step >= event.step:
+                        event.resumed_s = self.elapsed()
+                        log.info("%s is back: the loop resumed at step %d, %.2f s after it "
+                                 "died", name, step, event.resumed_s - event.died_s)
+                        del self._resuming[name]
                 self._cv.notify_all()
         return callback
+
+    def _on_journal_query(self, topic: str):
+        key = self.keys.journal(topic)
+        encoding = cdr_encoding(topic)
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                first = int(query.parameters.get("from", "0"))
+                last = int(query.parameters.get("to", str(first)))
+            except ValueError:
+                log.warning("journal query %s has non-integer from/to; ignored", query.selector)
+                return
+            with self._cv:
+                entries = list(self.journal.range(topic, first, last))
+            for entry in entries:
+                query.reply(key, entry.payload, encoding=encoding)
+        return on_query
+
+    def elapsed(self) -> float:
+        return time.monotonic() - self.t0
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
         with self._cv:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._alive.add(name)
+                self._ever_alive.add(name)
+                for event in self.events:
+                    if event.module == name and event.ready_s is None:
+                        event.ready_s = self.elapsed()
             else:
                 self._alive.discard(name)
             self._cv.notify_all()
@@ -105,44 +179,97 @@ class Hub:
 
     def launch(self, config_path: Path) -> None:
         """Start every module as its own OS process, logging to ``out/logs/<module>.log``."""
-        logs = self.out / "logs"
-        logs.mkdir(parents=True, exist_ok=True)
+        self.config_path = config_path
+        (self.out / "logs").mkdir(parents=True, exist_ok=True)
         for name in MODULES:
-            cmd = [sys.executable, "-m", "rovergate.cli", name, "--config", str(config_path),
-                   "--mode", "peer", "--connect", self.endpoint, "--listen", "tcp/127.0.0.1:0",
-                   "--namespace", self.cfg.session.namespace,
-                   "--wait-for-peers", str(len(MODULES))]
-            f = open(logs / f"{name}.log", "w")  # noqa: SIM115 -- closed in shutdown()
-            self._logs.append(f)
-            self.procs[name] = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
-                                                stdin=subprocess.DEVNULL)
-            log.info("started %s (pid %d)", name, self.procs[name].pid)
+            self._spawn(name)
 
-    def check_processes(self) -> None:
-        for name, p in self.procs.items():
+    def _spawn(self, name: str, resume_step: int | None = None) -> None:
+        cmd = [sys.executable, "-m", "rovergate.cli", name, "--config", str(self.config_path),
+               "--mode", "peer", "--connect", self.endpoint, "--listen", "tcp/127.0.0.1:0",
+               "--namespace", self.cfg.session.namespace,
+               "--wait-for-peers", str(len(MODULES))]
+        if resume_step is not None:
+            cmd += ["--resume-step", str(resume_step)]
+        # A restarted module appends to the log of the one that died.
+        f = open(self.out / "logs" / f"{name}.log",  # noqa: SIM115 -- closed in shutdown()
+                 "w" if resume_step is None else "a")
+        self._logs.append(f)
+        self.procs[name] = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
+                                            stdin=subprocess.DEVNULL)
+        log.info("started %s (pid %d)%s", name, self.procs[name].pid,
+                 "" if resume_step is None else f", resuming at step {resume_step}")
+
+    def check_processes(self) -> bool:
+        """Restart every module that died; True when one was restarted."""
+        restarted = False
+        for name, p in list(self.procs.items()):
             code = p.poll()
             if code is not None:
-                raise MissionFailed(
-                    f"module {name!r} exited with code {code} during the mission; its log is "
-                    f"{self.out / 'logs' / (name + '.log')}:\n{_tail(self.out, name)}")
+                self._restart(name, f"exited with code {code}")
+                restarted = True
+            elif name in self._ever_alive and name not in self._alive \
+                    and name not in self._resuming:
+                # Alive as a process but gone from the network (hung, or cut off): the loop
+                # cannot reach it, so it is replaced.
+                self._restart(name, "its liveliness token vanished")
+                restarted = True
+        return restarted
 
-    def _wait(self, ready, what: str, timeout_s: float) -> None:
+    def _restart(self, name: str, reason: str) -> None:
+        died = self.elapsed()
+        p = self.procs[name]
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        self._alive.discard(name)
+        self._ever_alive.discard(name)
+        self.restarts[name] += 1
+        if self.restarts[name] > self.cfg.max_restarts:
+            raise MissionFailed(
+                f"module {name!r} {reason} during the mission, after {self.restarts[name] - 1} "
+                f"restarts (--max-restarts {self.cfg.max_restarts}); its log is "
+                f"{self.out / 'logs' / (name + '.log')}:\n{_tail(self.out, name)}")
+        # Resume at the last step whose output the mission has seen, redone: whatever of it
+        # reached others again is a duplicate of the same bytes, which they ignore.
+        step = max(0, self.last_seen.get(PROGRESS_TOPIC[name], 0))
+        log.warning("module %s %s at step %d; the rover holds still while it restarts "
+                    "(restart %d of at most %d)", name, reason, step, self.restarts[name],
+                    self.cfg.max_restarts)
+        event = RestartEvent(name, step, reason, died)
+        self.events.append(event)
+        self._resuming[name] = event
+        self._spawn(name, resume_step=step)
+
+    def _wait(self, ready, what: str, timeout_s: float, restart: bool = True) -> None:
         deadline = time.monotonic() + timeout_s
         with self._cv:
             while not ready():
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise MissionFailed(f"timed out after {timeout_s:.0f} s waiting for {what}")
-                self._cv.wait(min(left, 0.2))
+                self._cv.wait(min(left, 0.05))
                 if STOP.is_set():
                     raise KeyboardInterrupt
-                self.check_processes()
+                if restart:
+                    if self.check_processes():  # a restart gets the full time again
+                        deadline = time.monotonic() + self.cfg.ready_timeout_s + timeout_s
+                else:
+                    self._fail_on_exit()
+
+    def _fail_on_exit(self) -> None:
+        for name, p in self.procs.items():
+            code = p.poll()
+            if code is not None:
+                raise MissionFailed(
+                    f"module {name!r} exited with code {code} before the mission started; its "
+                    f"log is {self.out / 'logs' / (name + '.log')}:\n{_tail(self.out, name)}")
 
     def wait_ready(self) -> None:
         self._wait(lambda: self._alive.issuperset(MODULES),
                    "the liveliness tokens of " + ", ".join(
                        f"{self.keys.alive(m)}" for m in MODULES if m not in self._alive),
-                   self.cfg.ready_timeout_s)
+                   self.cfg.ready_timeout_s, restart=False)
 
     def wait_message(self, topic: str, step: int) -> Any:
         self._wait(lambda: step in self.inbox[topic],
@@ -154,7 +281,7 @@ class Hub:
         key = self.keys.key("truth_surface")
         deadline = time.monotonic() + self.cfg.ready_timeout_s
         while time.monotonic() < deadline:
-            self.check_processes()
+            self._fail_on_exit()
             for reply in self.session.get(key, timeout=30.0, attachment="mission"):
                 if reply.ok is not None:
                     return xyz(check_and_decode("truth_surface", reply.ok)[1])
@@ -162,7 +289,10 @@ class Hub:
         raise MissionFailed(f"timed out waiting for an answer on {key}")
 
     def publish_status(self, status: MissionStatus) -> None:
-        self._status_pub.put(encode("status", status))
+        payload = encode("status", status)
+        with self._cv:
+            self.journal.add("status", status.step, payload)
+        self._status_pub.put(payload)
 
     def shutdown(self, timeout_s: float = 30.0) -> dict[str, int | None]:
         """Wait for the modules to exit (they stop on the final status), then close."""
@@ -184,6 +314,8 @@ class Hub:
         self._token.undeclare()
         for s in self._subs:
             s.undeclare()
+        for q in self._journal_qs:
+            q.undeclare()
         self._alive_sub.undeclare()
         self.session.close()
         return codes
@@ -277,11 +409,16 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
                 hub.kill_all()
             codes = hub.shutdown()
     dropped: dict[str, int] = {}
+    timings = {}
     while not hub.timings.empty():
         timing = hub.timings.get()
-        record.add_stage(timing.module, timing.compute_s)
-        module = STAGE_MODULE.get(timing.module, timing.module)
+        # A restarted module redoes its last step: keep one timing per stage and step.
+        timings[(timing.module, timing.step)] = timing
+    for (stage, _), timing in sorted(timings.items(), key=lambda kv: (kv[0][0], kv[0][1])):
+        record.add_stage(stage, timing.compute_s)
+        module = STAGE_MODULE.get(stage, stage)
         dropped[module] = max(dropped.get(module, 0), timing.dropped_total)
+    record.restarts = [e.as_dict() for e in hub.events]
     record.dropped_messages = sum(dropped.values()) + hub.dropped
     record.wall_s = time.perf_counter() - t_start
     bad = {n: c for n, c in codes.items() if c != 0}

@@ -33,6 +33,9 @@ class MissionRecord:
     planner_predicted: list[int] = field(default_factory=list)
     """Predicted points in the planner-facing map at each step 0..T-1."""
     surface_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    restarts: list[dict] = field(default_factory=list)
+    """Modules that died and were restarted (process set only): module, step, reason, and
+    the seconds from the death to the module's token and to the loop resuming."""
     wall_s: float = 0.0
     dropped_messages: int = 0
     mode: str = "in-process"
@@ -68,6 +71,7 @@ class MissionRecord:
             "median_step_s": float(np.median(self.step_wall_s)) if self.step_wall_s else 0.0,
             "wall_s": self.wall_s,
             "dropped_messages": self.dropped_messages,
+            "restarts": self.restarts,
             "observed_points": int(len(self.surface_xyz)),
             "predicted_points_per_step": self.predicted_points,
             "planner_predicted_per_step": self.planner_predicted,

@@ -11,7 +11,7 @@ from rovergate.logs import init_logging
 from rovergate.node import Input, ModuleNode
 
 
-def main(cfg: MissionConfig) -> int:
+def main(cfg: MissionConfig, resume_step: int = 0) -> int:
     log = init_logging("planner")
     planner = make_planner(cfg)
     node = ModuleNode("planner", cfg.session,
@@ -27,4 +27,7 @@ def main(cfg: MissionConfig) -> int:
         node.publish("path", result.path)
         return {"plan": seconds}
 
-    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1)
+    # A planner keeps no state between steps (its random draws are seeded by seed and step):
+    # a restarted one needs only the inputs of the step it resumes at.
+    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1,
+                    resume_step=resume_step)

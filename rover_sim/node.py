@@ -12,7 +12,7 @@ from rovergate.node import Input, ModuleNode
 from rovergate.types import XYZ_DTYPE, make_cloud
 
 
-def main(cfg: MissionConfig) -> int:
+def main(cfg: MissionConfig, resume_step: int = 0) -> int:
     log = init_logging("sim")
     sim = RoverSim(cfg)
     node = ModuleNode("sim", cfg.session,
@@ -39,6 +39,9 @@ def main(cfg: MissionConfig) -> int:
         return stages
 
     try:
-        return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps)
+        return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps,
+                        resume_step=resume_step,
+                        restore=lambda step, inputs: sim.restore(step, inputs["path"]),
+                        restore_inputs={"path": Input("path", lag=1)})
     finally:
         sim.close()

@@ -75,6 +75,15 @@ class RoverSim:
                            Pose.from_matrix(self._drift @ T_cam),
                            Pose.from_matrix(self._drift @ T_base))
 
+    def restore(self, step: int, path: PlanPath | None) -> None:
+        """Redo step ``step`` without rendering (a restarted simulator replaying its past):
+        execute the path of step - 1, then take up the frame of ``step`` as :meth:`render`
+        would. Executing is deterministic, so the state after it is the one the world had."""
+        if path is not None:
+            self.execute(path)
+        self._step = step
+        self._drift = self.sensing.drift_transform(self.T_map_base, step)
+
     def _true_state(self, pose: Pose) -> tuple[float, ...]:
         """A commanded pose (in the platform's believed frame) as a true state."""
         p = Pose.from_matrix(np.linalg.inv(self._drift) @ pose.matrix())

@@ -34,8 +34,8 @@ commands:
 `rovergate COMMAND --help` lists the flags."""
 
 
-def _module_main(name: str) -> Callable[[MissionConfig], int]:
-    def main(cfg: MissionConfig) -> int:
+def _module_main(name: str) -> Callable[..., int]:
+    def main(cfg: MissionConfig, resume_step: int = 0) -> int:
         from rover_sim.catalog import resolve_scene
         resolve_scene(cfg.scene)
         if name == "sim":
@@ -46,7 +46,7 @@ def _module_main(name: str) -> Callable[[MissionConfig], int]:
             from gate.node import main as m
         else:
             from planner.node import main as m
-        return m(cfg)
+        return m(cfg, resume_step)
     return main
 
 
@@ -55,7 +55,7 @@ def _run(cfg: MissionConfig) -> int:
     return main(cfg)
 
 
-COMMANDS: dict[str, Callable[[MissionConfig], int]] = {
+COMMANDS: dict[str, Callable[..., int]] = {
     "run": _run, **{n: _module_main(n) for n in ("sim", "mapper", "gate", "planner")}}
 
 
@@ -71,14 +71,29 @@ def _aliases(args: list[str]) -> list[str]:
     return out
 
 
-def parse(argv: list[str]) -> tuple[str, MissionConfig]:
-    """Split ``argv`` into the command and its resolved config."""
+def _pop_resume_step(command: str, rest: list[str]) -> int:
+    """``--resume-step N``: a module restarted by the mission takes up the loop at step N
+    (the mission passes it; see mission/hub.py)."""
+    if "--resume-step" not in rest:
+        return 0
+    i = rest.index("--resume-step")
+    value = rest[i + 1] if i + 1 < len(rest) else ""
+    if command == "run" or not value.isdigit():
+        raise SystemExit("error: --resume-step takes a step number and is for the module "
+                         "commands (sim, mapper, gate, planner), e.g. --resume-step 12")
+    del rest[i:i + 2]
+    return int(value)
+
+
+def parse(argv: list[str]) -> tuple[str, MissionConfig, int]:
+    """Split ``argv`` into the command, its resolved config and the step to resume at."""
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
         if argv and argv[0] not in ("-h", "--help"):
             print(f"error: unknown command {argv[0]!r}", file=sys.stderr)
         print(USAGE, file=sys.stderr)
         raise SystemExit(0 if argv and argv[0] in ("-h", "--help") else 2)
     command, rest = argv[0], _aliases(list(argv[1:]))
+    resume_step = _pop_resume_step(command, rest)
     default = MissionConfig()
     if "--config" in rest:
         i = rest.index("--config")
@@ -88,7 +103,7 @@ def parse(argv: list[str]) -> tuple[str, MissionConfig]:
         del rest[i:i + 2]
     cfg = tyro.cli(MissionConfig, args=rest, default=default, prog=f"rovergate {command}",
                    description=COMMANDS[command].__doc__ or USAGE)
-    return command, cfg
+    return command, cfg, resume_step
 
 
 def _interrupt(signum, frame) -> None:
@@ -119,14 +134,14 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(study_main(tyro.cli(StudyConfig, args=argv[1:],
                                              prog="rovergate study",
                                              description=StudyConfig.__doc__)))
-    command, cfg = parse(argv)
+    command, cfg, resume_step = parse(argv)
     # Ctrl-C and SIGTERM both mean: stop cleanly at the next wait (rovergate.node.STOP).
     # Installed explicitly, because a process started in the background may inherit an
     # ignored SIGINT.
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
     try:
-        code = COMMANDS[command](cfg)
+        code = COMMANDS[command](cfg, resume_step) if resume_step else COMMANDS[command](cfg)
     except KeyboardInterrupt:
         code = 130
     raise SystemExit(code)

@@ -234,6 +234,9 @@ class MissionConfig:
     """How long to wait for every module's liveliness token."""
     step_timeout_s: float = 120.0
     """How long to wait for any one message of a step."""
+    max_restarts: int = 3
+    """Process set: how many times each module that dies is restarted before the mission
+    fails (the loop resumes at the step where it stopped)."""
     progress: bool = True
     """Show a progress bar."""
     sensor: SensorConfig = field(default_factory=SensorConfig)

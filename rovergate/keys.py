@@ -12,6 +12,11 @@ from dataclasses import dataclass
 #: Modules started by ``rovergate run``, in launch order.
 MODULES: tuple[str, ...] = ("sim", "mapper", "gate", "planner")
 
+#: The output each module publishes last in a step: once the mission has it for step t, the
+#: module has handled step t. A restarted module resumes at that step (see mission/health.py).
+PROGRESS_TOPIC: dict[str, str] = {"sim": "base_pose", "mapper": "predicted",
+                                  "gate": "planner_map", "planner": "path"}
+
 
 @dataclass(frozen=True)
 class Topic:
@@ -70,3 +75,8 @@ class Keys:
     @property
     def alive_all(self) -> str:
         return f"{self.namespace}/alive/*"
+
+    def journal(self, topic: str) -> str:
+        """Queryable of the mission's journal of a topic: the samples of past steps, which a
+        restarted module replays (parameters ``from`` and ``to``, steps inclusive)."""
+        return f"{self.namespace}/mission/journal/{TOPICS[topic].suffix}"

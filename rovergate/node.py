@@ -88,6 +88,7 @@ class ModuleNode:
         self._watchdog = self.session.liveliness().declare_subscriber(
             self.keys.alive("mission"), self._on_mission_liveliness, history=True)
         self._queryables: list[zenoh.Queryable] = []
+        self._first_step = 0
 
     # --- receiving ------------------------------------------------------------------------
 
@@ -149,12 +150,9 @@ class ModuleNode:
         raise SystemExit(f"error: {self.name}: no answer on {key} within {timeout_s:.0f} s; "
                          "is the simulator running in this namespace?")
 
-    def ready(self, timeout_s: float = 60.0) -> None:
-        """Declare this module's liveliness token: everything is subscribed and loaded.
-
-        With ``wait_for_peers`` set, first wait until that many peers are linked, so that
-        messages published right after the mission starts reach their subscribers.
-        """
+    def wait_for_peers(self, timeout_s: float = 60.0) -> None:
+        """With ``wait_for_peers`` set, wait until that many peers are linked, so that
+        messages published right after the mission starts reach their subscribers."""
         want = self.session_cfg.wait_for_peers
         deadline = time.monotonic() + timeout_s
         while want and len(list(self.session.info.peers_zid())) < want:
@@ -164,14 +162,100 @@ class ModuleNode:
                                  f"after {timeout_s:.0f} s; check the --connect/--listen "
                                  "endpoints")
             time.sleep(0.01)
+
+    def ready(self, timeout_s: float = 60.0) -> None:
+        """Declare this module's liveliness token: everything is subscribed and loaded."""
+        self.wait_for_peers(timeout_s)
         self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
         self.log.info("ready: liveliness token %s declared", self.keys.alive(self.name))
+
+    # --- recovery ---------------------------------------------------------------------------
+
+    def fetch_journal(self, topic: str, first: int, last: int, timeout_s: float = 30.0
+                      ) -> dict[int, Any]:
+        """The samples of ``topic`` for steps ``first..last`` that the mission journalled."""
+        out: dict[int, Any] = {}
+        if last < first:
+            return out
+        selector = f"{self.keys.journal(topic)}?from={first};to={last}"
+        # One reply per step, all on the same key: zenoh's default consolidation would keep
+        # only the latest of them.
+        for reply in self.session.get(selector, timeout=timeout_s, attachment=self.name,
+                                      consolidation=zenoh.ConsolidationMode.NONE):
+            if reply.ok is None:
+                continue
+            try:
+                step, value = check_and_decode(topic, reply.ok)
+            except MessageError as exc:
+                self.log.warning("dropped a journal reply on %s: %s", selector, exc)
+                continue
+            out[step] = value
+        return out
+
+    def resume(self, step: int, restore: Callable[[int, dict[str, Any]], None] | None = None,
+               restore_inputs: dict[str, Input] | None = None, timeout_s: float = 60.0
+               ) -> None:
+        """Rebuild this module's state after a restart, then take up the lockstep at ``step``.
+
+        ``restore(s, inputs)`` is called for every step s < ``step`` with that step's
+        ``restore_inputs`` from the mission's journal (a module is a deterministic function
+        of its inputs, so this rebuilds exactly the state it had); then the inputs of
+        ``step`` on, published while the module was down, are taken from the journal.
+        """
+        if step <= 0:
+            return
+        # The mission journals every tick: an answer proves that the journal is reachable
+        # (right after a session opens, a query may not be routed yet).
+        deadline = time.monotonic() + timeout_s
+        while not self.fetch_journal("status", 0, step, timeout_s=5.0):
+            if time.monotonic() > deadline or STOP.is_set():
+                raise SystemExit(f"error: {self.name}: the mission's journal "
+                                 f"({self.keys.journal('status')}) did not answer within "
+                                 f"{timeout_s:.0f} s; cannot resume at step {step}")
+            time.sleep(0.1)
+        t0 = time.perf_counter()
+        if restore is not None and restore_inputs:
+            history = {n: self.fetch_journal(i.topic, 0, step - 1 - i.lag)
+                       for n, i in restore_inputs.items()}
+            for s in range(step):
+                missing = [n for n, i in restore_inputs.items()
+                           if s - i.lag >= 0 and s - i.lag not in history[n]]
+                if missing:
+                    raise SystemExit(f"error: {self.name}: the mission's journal lacks "
+                                     f"{', '.join(missing)} of step {s}; cannot resume")
+                restore(s, {n: history[n].get(s - i.lag) for n, i in restore_inputs.items()})
+        # Inputs of this step and any later one already sent (the module redoes the last
+        # step it finished, so the next step's inputs may be out too).
+        for name, inp in self.inputs.items():
+            self._buffers[name].update(
+                self.fetch_journal(inp.topic, max(0, step - inp.lag), 2**31 - 1))
+        self._first_step = step
+        self.log.debug("journalled inputs: %s", {n: sorted(b) for n, b in self._buffers.items()})
+        self.log.info("resumed at step %d (state rebuilt from %d journalled steps in %.2f s)",
+                      step, step, time.perf_counter() - t0)
 
     # --- the lockstep ---------------------------------------------------------------------
 
     def _missing(self, step: int) -> list[str]:
         return [n for n, i in self.inputs.items()
                 if step - i.lag >= 0 and (step - i.lag) not in self._buffers[n]]
+
+    def _handle_complete(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
+                         step: int, last_step: int | None) -> int:
+        """Run the handler for every step, from ``step`` on, whose inputs are all in; returns
+        the first step still waiting."""
+        while not self._missing(step) and (last_step is None or step <= last_step):
+            inputs = {n: self._buffers[n].pop(step - i.lag, None)
+                      for n, i in self.inputs.items()}
+            self._publish_s = 0.0
+            t0 = time.perf_counter()
+            stages = handler(step, inputs)
+            if stages is None:
+                stages = {self.name: time.perf_counter() - t0 - self._publish_s}
+            for stage, seconds in stages.items():
+                self.publish("timing", StepTiming(step, stage, seconds, self.dropped))
+            step += 1
+        return step
 
     def spin(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
              idle_timeout_s: float, last_step: int | None = None) -> str:
@@ -184,7 +268,8 @@ class ModuleNode:
         Returns why it stopped: ``done`` or ``aborted`` (the mission said so), ``mission-lost``
         (the mission's liveliness token vanished) or ``idle-timeout``.
         """
-        step = 0
+        # A resumed module may hold a complete step already (from the journal).
+        step = self._handle_complete(handler, self._first_step, last_step)
         while True:
             deadline = time.monotonic() + idle_timeout_s
             item = None
@@ -209,23 +294,21 @@ class ModuleNode:
             for name, inp in self.inputs.items():
                 if inp.topic == topic and msg_step >= step - inp.lag:
                     self._buffers[name][msg_step] = value
-            while not self._missing(step) and (last_step is None or step <= last_step):
-                inputs = {n: self._buffers[n].pop(step - i.lag, None)
-                          for n, i in self.inputs.items()}
-                self._publish_s = 0.0
-                t0 = time.perf_counter()
-                stages = handler(step, inputs)
-                if stages is None:
-                    stages = {self.name: time.perf_counter() - t0 - self._publish_s}
-                for stage, seconds in stages.items():
-                    self.publish("timing", StepTiming(step, stage, seconds, self.dropped))
-                step += 1
+            step = self._handle_complete(handler, step, last_step)
 
     def run(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
-            idle_timeout_s: float, last_step: int | None = None) -> int:
+            idle_timeout_s: float, last_step: int | None = None, resume_step: int = 0,
+            restore: Callable[[int, dict[str, Any]], None] | None = None,
+            restore_inputs: dict[str, Input] | None = None) -> int:
         """Declare readiness, spin until the mission ends, close; returns the exit code
-        (0 when the mission said done or aborted)."""
+        (0 when the mission said done or aborted).
+
+        ``resume_step`` > 0 (a restarted module): first rebuild the state with ``restore``
+        over the journalled ``restore_inputs`` of the steps before it (:meth:`resume`)."""
         try:
+            if resume_step > 0:
+                self.wait_for_peers()
+                self.resume(resume_step, restore, restore_inputs)
             self.ready()
             reason = self.spin(handler, idle_timeout_s, last_step)
         finally:

@@ -98,8 +98,11 @@ def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path):
 
 
 def test_a_module_that_dies_stops_the_mission_with_its_name(tmp_path: Path):
+    """With no restarts allowed (tests/test_health.py covers restarting), a module's death
+    ends the mission with its name, and no process is left behind."""
     mission = subprocess.Popen(
-        [*ROVERGATE, "run", "--steps", "500", "--no-progress", "--out", str(tmp_path)],
+        [*ROVERGATE, "run", "--steps", "500", "--no-progress", "--out", str(tmp_path),
+         "--max-restarts", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
     ready = threading.Event()
@@ -122,7 +125,7 @@ def test_a_module_that_dies_stops_the_mission_with_its_name(tmp_path: Path):
     reader.join(10)
     text = "".join(lines)
     assert mission.returncode == 1
-    assert "module 'planner' exited with code -9" in text
+    assert "module 'planner' exited with code -9 during the mission, after 0 restarts" in text
     time.sleep(1.0)
     left = subprocess.run(["pgrep", "-f", f"--config {config}"], capture_output=True, text=True)
     assert left.stdout.strip() == "", "modules left running"
