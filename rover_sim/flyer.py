@@ -18,6 +18,19 @@ from rovergate.types import Pose
 FlyerState = tuple[float, float, float, float, float]
 
 
+def scene_bvh(scene: Scene) -> fcl.BVHModel:
+    """The FCL model of the scene's solid mesh, built once per scene (it is only read)."""
+    bvh = getattr(scene, "_fcl_bvh", None)
+    if bvh is None:
+        mesh = scene.solid_mesh
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
+        bvh.addSubModel(mesh.vertices, mesh.faces)
+        bvh.endModel()
+        scene._fcl_bvh = bvh
+    return bvh
+
+
 class FlyerBody:
     """Sphere kinematics and FCL clearance against the whole true scene."""
 
@@ -25,12 +38,7 @@ class FlyerBody:
         self.scene = scene
         self.cfg = flyer
         self.spacing = check_spacing_m
-        mesh = scene.solid_mesh
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
-        bvh.addSubModel(mesh.vertices, mesh.faces)
-        bvh.endModel()
-        self._scene_obj = fcl.CollisionObject(bvh, fcl.Transform())
+        self._scene_obj = fcl.CollisionObject(scene_bvh(scene), fcl.Transform())
         self._sphere = fcl.CollisionObject(fcl.Sphere(flyer.radius_m))
 
     def start_state(self, x: float, y: float, yaw: float) -> FlyerState:
