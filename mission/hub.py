@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import queue
+import shlex
 import subprocess
 import sys
 import threading
@@ -116,6 +117,7 @@ class Hub:
         self._token = self.session.liveliness().declare_token(self.keys.alive("mission"))
         self.procs: dict[str, subprocess.Popen] = {}
         self._logs: list[Any] = []
+        self._configs = 0
 
     def _on_sample(self, topic: str):
         def callback(sample: zenoh.Sample) -> None:
@@ -185,20 +187,33 @@ class Hub:
             self._spawn(name)
 
     def _spawn(self, name: str, resume_step: int | None = None) -> None:
-        cmd = [sys.executable, "-m", "rovergate.cli", name, "--config", str(self.config_path),
-               "--mode", "peer", "--connect", self.endpoint, "--listen", "tcp/127.0.0.1:0",
-               "--namespace", self.cfg.session.namespace,
-               "--wait-for-peers", str(len(MODULES))]
-        if resume_step is not None:
-            cmd += ["--resume-step", str(resume_step)]
+        if name == "planner" and self.cfg.planner.command:
+            # A planner of the user's own: it gets the endpoint and the namespace.
+            cmd = [*shlex.split(self.cfg.planner.command), "--connect", self.endpoint,
+                   "--namespace", self.cfg.session.namespace]
+        else:
+            cmd = [sys.executable, "-m", "rovergate.cli", name, "--config",
+                   str(self.config_path), "--mode", "peer", "--connect", self.endpoint,
+                   "--listen", "tcp/127.0.0.1:0", "--namespace", self.cfg.session.namespace,
+                   "--wait-for-peers", str(len(MODULES))]
+            if resume_step is not None:
+                cmd += ["--resume-step", str(resume_step)]
         # A restarted module appends to the log of the one that died.
         f = open(self.out / "logs" / f"{name}.log",  # noqa: SIM115 -- closed in shutdown()
                  "w" if resume_step is None else "a")
         self._logs.append(f)
-        self.procs[name] = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
-                                            stdin=subprocess.DEVNULL)
+        try:
+            self.procs[name] = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
+                                                stdin=subprocess.DEVNULL)
+        except OSError as exc:
+            raise MissionFailed(f"could not start {name} ({' '.join(cmd)}): {exc}") from None
         log.info("started %s (pid %d)%s", name, self.procs[name].pid,
                  "" if resume_step is None else f", resuming at step {resume_step}")
+
+    def check_health(self) -> bool:
+        """:meth:`check_processes` from outside a wait."""
+        with self._cv:
+            return self.check_processes()
 
     def check_processes(self) -> bool:
         """Restart every module that died; True when one was restarted."""
@@ -215,6 +230,30 @@ class Hub:
                 self._restart(name, "its liveliness token vanished")
                 restarted = True
         return restarted
+
+    def reconfigure(self, cfg: MissionConfig, modules: list[str], step: int) -> None:
+        """Restart ``modules`` with ``cfg`` at the boundary before ``step`` (every module is
+        then waiting for step ``step``'s inputs); they rebuild their state from the journal."""
+        self.cfg = cfg
+        self._configs += 1
+        self.config_path = self.out / f"config.{self._configs}.json"
+        save_config(cfg, self.config_path)
+        with self._cv:
+            for name in modules:
+                self.procs[name].terminate()
+            for name in modules:
+                try:
+                    self.procs[name].wait(30)
+                except subprocess.TimeoutExpired:
+                    self.procs[name].kill()
+                    self.procs[name].wait()
+                self._alive.discard(name)
+                self._ever_alive.discard(name)
+            for name in modules:
+                self._spawn(name, resume_step=step)
+        self._wait(lambda: self._alive.issuperset(modules),
+                   "the liveliness tokens of the restarted " + ", ".join(modules),
+                   self.cfg.ready_timeout_s)
 
     def _restart(self, name: str, reason: str) -> None:
         died = self.elapsed()
@@ -290,8 +329,9 @@ class Hub:
 
     def publish_status(self, status: MissionStatus) -> None:
         payload = encode("status", status)
-        with self._cv:
-            self.journal.add("status", status.step, payload)
+        if status.state == "running":  # the ticks; a restarted simulator replays them
+            with self._cv:
+                self.journal.add("status", status.step, payload)
         self._status_pub.put(payload)
 
     def shutdown(self, timeout_s: float = 30.0) -> dict[str, int | None]:
@@ -342,15 +382,18 @@ def _tail(out: Path, name: str, lines: int = 15) -> str:
 
 def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
     """Run the mission as a process set over Zenoh; raises MissionFailed on a fault."""
+    from mission.operations import Operations
     out = Path(cfg.out)
     record = MissionRecord(mode="processes")
     t_start = time.perf_counter()
     hub = Hub(cfg, out)
     config_path = out / "config.json"
     save_config(cfg, config_path)
-    state = "aborted"
+    state = "failed"
     collisions = 0
+    ops = None
     try:
+        ops = Operations(cfg, out, hub) if cfg.contact.enabled else None
         hub.launch(config_path)
         hub.wait_ready()
         log.info("all modules ready: %s", ", ".join(MODULES))
@@ -358,14 +401,26 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
         evaluator = CoverageEvaluator(truth_surface, cfg.eval.tau_frac * cfg.scene.d_scene_m)
         # Evaluation only: the reference occupancy O* (as the simulator derives it) to audit
         # what the gate withheld.
-        audit_ref = (voxel_first_points(truth_surface, cfg.mapper.voxel_m)
-                     if cfg.condition == "gated" else None)
-        audit_tree = cKDTree(audit_ref) if audit_ref is not None else None
+        audit_ref = voxel_first_points(truth_surface, cfg.mapper.voxel_m)
+        audit_tree = None
         delta_m = cfg.gate.oracle_delta_frac * cfg.scene.d_scene_m
+        if ops:
+            ops.bridge.event(0, "mission-started",
+                             f"{cfg.scene.name}/{cfg.start}, {cfg.platform}, {cfg.condition}, "
+                             f"{cfg.steps} steps")
         t_step = time.perf_counter()
         for t in range(cfg.steps + 1):
+            if ops:
+                t_boundary = time.perf_counter()
+                ops.boundary(t)  # the link, and ground commands (they may pause or abort)
+                if ops.abort:
+                    state = "aborted"
+                    break
+                # A pause or a restart at the boundary is not the loop's step time.
+                t_step += time.perf_counter() - t_boundary
+            condition = hub.cfg.condition  # a ground command may have changed it
             cov = record.coverage[-1] if record.coverage else 0.0
-            hub.publish_status(MissionStatus(t, cfg.steps, "running", cfg.condition, cov,
+            hub.publish_status(MissionStatus(t, cfg.steps, "running", condition, cov,
                                              collisions))
             if t > 0:
                 record.paths.append(hub.wait_message("path", t - 1))
@@ -379,13 +434,13 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
                 kept = len(kept_points)
                 record.predicted_points.append(len(predicted))
                 record.planner_predicted.append(kept)
-                if audit_ref is not None:
+                if condition == "gated":
+                    audit_tree = audit_tree or cKDTree(audit_ref)
                     record.suppressed_fp.append(suppression_audit(
                         xyz(predicted), xyz(kept_points), audit_ref, delta_m, audit_tree)[1])
                 # The map message has no count of what the gate withheld; under the gate,
                 # what it withheld is what it did not pass on.
-                record.suppressed.append(len(predicted) - kept if cfg.condition == "gated"
-                                         else 0)
+                record.suppressed.append(len(predicted) - kept if condition == "gated" else 0)
             surface = hub.wait_message("surface", t)
             base = hub.wait_message("base_pose", t)
             if t > 0:
@@ -393,21 +448,32 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
                 t_step = time.perf_counter()
             record.base_xy.append((float(base.position[0]), float(base.position[1])))
             record.coverage.append(evaluator.update(xyz(surface)))
+            if ops:
+                ops.after_step(MissionStatus(t, cfg.steps, "running", condition,
+                                             record.coverage[-1], collisions), base, surface)
             if on_step:
                 on_step(t, record.coverage[-1])
             if t == cfg.steps:
                 record.surface_xyz = xyz(surface)
-        state = "done"
+        else:
+            state = "done"
     finally:
         final = MissionStatus(len(record.coverage) - 1 if record.coverage else 0, cfg.steps,
-                              state, cfg.condition,
+                              "done" if state == "done" else "aborted", hub.cfg.condition,
                               record.coverage[-1] if record.coverage else 0.0, collisions)
         try:
             hub.publish_status(final)
         finally:
-            if state != "done":
+            if state == "failed":
                 hub.kill_all()
             codes = hub.shutdown()
+            if ops:
+                try:
+                    if state != "failed":
+                        record.link = ops.finish(final)
+                finally:
+                    ops.close()
+    record.state = state
     dropped: dict[str, int] = {}
     timings = {}
     while not hub.timings.empty():

@@ -36,6 +36,11 @@ class MissionRecord:
     restarts: list[dict] = field(default_factory=list)
     """Modules that died and were restarted (process set only): module, step, reason, and
     the seconds from the death to the module's token and to the loop resuming."""
+    link: dict = field(default_factory=dict)
+    """The link to the ground (process set): link steps, items radiated and undelivered,
+    ground commands and reconfigurations."""
+    state: str = "done"
+    """done, or aborted (by a ground command)."""
     wall_s: float = 0.0
     dropped_messages: int = 0
     mode: str = "in-process"
@@ -72,6 +77,8 @@ class MissionRecord:
             "wall_s": self.wall_s,
             "dropped_messages": self.dropped_messages,
             "restarts": self.restarts,
+            "state": self.state,
+            "link": self.link,
             "observed_points": int(len(self.surface_xyz)),
             "predicted_points_per_step": self.predicted_points,
             "planner_predicted_per_step": self.planner_predicted,

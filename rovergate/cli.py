@@ -30,6 +30,8 @@ commands:
   eval-model  precision / recall of the learned occupancy on held-out scenes
   study     the paper's controlled study: every (scene, start, condition, repetition) in
             parallel workers, resumable; writes runs.csv, table1.md, table2.md and plots
+  ground    the ground station: shows and records the downlinked telemetry, sends commands
+            (pause, resume, abort, set, condition, planner) up in the next contact window
 
 `rovergate COMMAND --help` lists the flags."""
 
@@ -134,12 +136,18 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(study_main(tyro.cli(StudyConfig, args=argv[1:],
                                              prog="rovergate study",
                                              description=StudyConfig.__doc__)))
-    command, cfg, resume_step = parse(argv)
     # Ctrl-C and SIGTERM both mean: stop cleanly at the next wait (rovergate.node.STOP).
     # Installed explicitly, because a process started in the background may inherit an
     # ignored SIGINT.
     signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
+    if argv and argv[0] == "ground":
+        from mission.ground import GroundConfig
+        from mission.ground import main as ground_main
+        raise SystemExit(ground_main(tyro.cli(GroundConfig, args=argv[1:],
+                                              prog="rovergate ground",
+                                              description=GroundConfig.__doc__)))
+    command, cfg, resume_step = parse(argv)
     try:
         code = COMMANDS[command](cfg, resume_step) if resume_step else COMMANDS[command](cfg)
     except KeyboardInterrupt:

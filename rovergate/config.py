@@ -198,6 +198,9 @@ class PlannerConfig:
     """Cell of the ground-height grid the collision model derives from the map."""
     obstacle_voxel_m: float = 0.15
     """Edge of the box that each obstacle point becomes in FCL."""
+    command: str = ""
+    """Run this program as the planner process instead of the built-in one (the mission
+    appends --connect ENDPOINT --namespace NS; see docs/writing-a-planner.md)."""
 
 
 @dataclass
@@ -209,6 +212,47 @@ class EvalConfig:
     d_scene (0.21 m on arch_field: about one mapper voxel diagonal)."""
     n_samples: int = 100_000
     """Ground-truth surface samples, drawn by area with a fixed seed."""
+
+
+@dataclass
+class ContactConfig:
+    """Communication with the ground station: contact windows, light time, downlink rate
+    (the process set's mission manager; see mission/contact.py)."""
+
+    enabled: bool = True
+    """Simulate the link and open the ground endpoint (process set only)."""
+
+    period_steps: int = 25
+    """A window opens every this many steps..."""
+    window_steps: int = 5
+    """...and stays open this many steps."""
+    first_window_step: int = 0
+    """Step at which the first periodic window opens."""
+    windows: tuple[str, ...] = ()
+    """Explicit windows as START+DURATION in steps (e.g. 10+5 40+3); replaces the periodic
+    plan when given."""
+    step_s: float = 60.0
+    """Simulated seconds per planning step (a 3 m drive, a look around)."""
+    light_time_s: float = 90.0
+    """One-way light time between the rover and the ground, simulated seconds (Mars: 180 to
+    1340 s; this default keeps a command's round trip inside the default window)."""
+    downlink_kbps: float = 128.0
+    """Downlink rate, kilobits per simulated second."""
+    queue_max_mb: float = 64.0
+    """Bound on the onboard store-and-forward queue. Over it, the oldest unsent status and
+    pose samples are dropped first; events are never dropped (see mission/downlink.py)."""
+    map_snapshot_points: int = 20_000
+    """Most points in one downlinked map snapshot (the observed surface, thinned evenly)."""
+    ground_listen: tuple[str, ...] = ("tcp/127.0.0.1:7448",)
+    """Endpoints where the ground network listens (the mission manager's ground-side session);
+    `rovergate ground --connect` one of them. tcp/0.0.0.0:7448 lets another machine in."""
+    ground_namespace: str = "ground"
+    """Prefix of the ground network's keys."""
+    drain_steps: int = 200
+    """After the last step, with a ground station connected, keep the clock (and the
+    windows) running for at most this many idle steps until all telemetry is acknowledged."""
+    idle_step_wall_s: float = 0.05
+    """Wall time of one idle step (while paused, or draining after the mission)."""
 
 
 @dataclass
@@ -247,6 +291,7 @@ class MissionConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    contact: ContactConfig = field(default_factory=ContactConfig)
     session: tyro.conf.OmitArgPrefixes[SessionConfig] = field(default_factory=SessionConfig)
 
 

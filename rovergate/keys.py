@@ -25,6 +25,9 @@ class Topic:
     suffix: str
     msgtype: str
     doc: str
+    network: str = "rover"
+    """rover (the rover's processes) or ground (the ground station and the mission's bridge,
+    under the ground namespace)."""
 
 
 #: The public contract: the README's topic table is generated from the same entries.
@@ -55,6 +58,14 @@ TOPICS: dict[str, Topic] = {
                            "queryable: ground-truth surface samples (evaluation only)"),
     "truth_occupancy": Topic("truth/occupancy", "sensor_msgs/msg/PointCloud2",
                              "queryable: reference occupied points O* (oracle conditions only)"),
+    "downlink": Topic("downlink", "rovergate_msgs/msg/TelemetryFrame",
+                      "telemetry radiated in contact windows: status, pose, events, maps",
+                      "ground"),
+    "downlink_ack": Topic("downlink/ack", "rovergate_msgs/msg/DownlinkAck",
+                          "the ground station's acknowledgement of sequence numbers", "ground"),
+    "uplink": Topic("uplink", "rovergate_msgs/msg/GroundCommand",
+                    "commands from the ground station (pause, resume, abort, set, ...)",
+                    "ground"),
 }
 
 

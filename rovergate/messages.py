@@ -29,15 +29,21 @@ from rovergate.types import (
     SURFACE_DTYPE,
     XYZ_DTYPE,
     CameraIntrinsics,
+    CommandAck,
+    DownlinkAck,
     ExecutionReport,
+    GroundCommand,
+    MissionEvent,
     MissionStatus,
     PlannerMap,
     PlanPath,
     Pose,
     StepTiming,
+    TelemetryFrame,
 )
 
-PROJECT_TYPES = ("MissionStatus", "ExecutionReport", "StepTiming")
+PROJECT_TYPES = ("MissionStatus", "ExecutionReport", "StepTiming", "TelemetryFrame",
+                 "DownlinkAck", "GroundCommand", "CommandAck", "MissionEvent")
 
 
 class MessageError(ValueError):
@@ -234,6 +240,57 @@ def timing_from_ros(m) -> StepTiming:
     return StepTiming(int(m.step), str(m.module), float(m.compute_s), int(m.dropped_total))
 
 
+# --- the ground link ------------------------------------------------------------------------
+
+def frame_to_ros(f: TelemetryFrame):
+    return _T["rovergate_msgs/msg/TelemetryFrame"](
+        header=_header(f.step), seq=f.seq, kind=f.kind, msgtype=f.msgtype, step=f.step,
+        radiated_s=float(f.radiated_s), payload=np.frombuffer(f.payload, dtype=np.uint8))
+
+
+def frame_from_ros(m) -> TelemetryFrame:
+    return TelemetryFrame(int(m.seq), str(m.kind), str(m.msgtype), int(m.step),
+                          float(m.radiated_s), m.payload.tobytes())
+
+
+def ack_to_ros(a: DownlinkAck):
+    return _T["rovergate_msgs/msg/DownlinkAck"](
+        header=_header(0), seqs=np.asarray(a.seqs, dtype=np.uint64))
+
+
+def ack_from_ros(m) -> tuple[int, DownlinkAck]:
+    return 0, DownlinkAck([int(s) for s in m.seqs])
+
+
+def command_to_ros(c: GroundCommand):
+    return _T["rovergate_msgs/msg/GroundCommand"](header=_header(0), id=c.id, verb=c.verb,
+                                                  args=list(c.args))
+
+
+def command_from_ros(m) -> tuple[int, GroundCommand]:
+    return 0, GroundCommand(int(m.id), str(m.verb), [str(a) for a in m.args])
+
+
+def command_ack_to_ros(a: CommandAck):
+    return _T["rovergate_msgs/msg/CommandAck"](
+        header=_header(a.step), id=a.id, verb=a.verb, state=a.state, step=a.step,
+        received_s=float(a.received_s), detail=a.detail)
+
+
+def command_ack_from_ros(m) -> CommandAck:
+    return CommandAck(int(m.id), str(m.verb), str(m.state), int(m.step), float(m.received_s),
+                      str(m.detail))
+
+
+def event_to_ros(e: MissionEvent):
+    return _T["rovergate_msgs/msg/MissionEvent"](header=_header(e.step), step=e.step,
+                                                 kind=e.kind, detail=e.detail)
+
+
+def event_from_ros(m) -> MissionEvent:
+    return MissionEvent(int(m.step), str(m.kind), str(m.detail))
+
+
 # --- the table: topic -> (to_ros, from_ros) -------------------------------------------------
 # ``to_ros`` takes the value a module publishes; ``from_ros`` returns (step, value).
 
@@ -267,7 +324,41 @@ _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]
     "timing": (timing_to_ros, _with_step(timing_from_ros)),
     "truth_surface": _cloud_codec(XYZ_DTYPE),
     "truth_occupancy": _cloud_codec(XYZ_DTYPE),
+    "downlink": (frame_to_ros, _with_step(frame_from_ros)),
+    "downlink_ack": (ack_to_ros, ack_from_ros),
+    "uplink": (command_to_ros, command_from_ros),
 }
+
+#: What a telemetry item of each kind carries: (ROS 2 type, to_ros, from_ros -> value).
+ITEM_TYPES: dict[str, tuple[str, Callable[[Any], Any], Callable[[Any], Any]]] = {
+    "status": ("rovergate_msgs/msg/MissionStatus", status_to_ros, status_from_ros),
+    "pose": ("geometry_msgs/msg/PoseStamped", lambda v: pose_to_ros(*v),
+             lambda m: pose_from_ros(m)[1]),
+    "map": ("sensor_msgs/msg/PointCloud2", lambda v: cloud_to_ros(*v),
+            lambda m: cloud_from_ros(m, SURFACE_DTYPE)[1]),
+    "event": ("rovergate_msgs/msg/MissionEvent", event_to_ros, event_from_ros),
+    "command_ack": ("rovergate_msgs/msg/CommandAck", command_ack_to_ros,
+                    command_ack_from_ros),
+}
+
+
+def encode_item(kind: str, value: Any) -> tuple[str, bytes]:
+    """A telemetry item's (ROS 2 type, CDR bytes); ``pose`` and ``map`` take (step, value)."""
+    msgtype, to_ros, _ = ITEM_TYPES[kind]
+    return msgtype, bytes(TYPESTORE.serialize_cdr(to_ros(value), msgtype))
+
+
+def decode_item(kind: str, msgtype: str, payload: bytes) -> Any:
+    """The value of a downlinked item. Raises :class:`MessageError` on anything malformed."""
+    if kind not in ITEM_TYPES or ITEM_TYPES[kind][0] != msgtype:
+        raise MessageError(f"telemetry item of kind {kind!r} with type {msgtype!r} is not one "
+                           "this version knows")
+    try:
+        return ITEM_TYPES[kind][2](TYPESTORE.deserialize_cdr(payload, msgtype))
+    except MessageError:
+        raise
+    except Exception as exc:
+        raise MessageError(f"not a valid CDR {msgtype}: {exc}") from None
 
 
 def encode(topic: str, value: Any) -> bytes:

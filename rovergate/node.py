@@ -291,6 +291,8 @@ class ModuleNode:
             if topic == "status" and value.state in ("done", "aborted"):
                 self.log.info("mission %s at step %d; stopping", value.state, value.step)
                 return value.state
+            if topic == "status" and value.state == "paused":
+                continue  # the mission holds the clock: a keep-alive, not a tick
             for name, inp in self.inputs.items():
                 if inp.topic == topic and msg_step >= step - inp.lag:
                     self._buffers[name][msg_step] = value

@@ -240,3 +240,60 @@ class StepTiming:
     module: str
     compute_s: float
     dropped_total: int
+
+
+# --- the ground link (mission/bridge.py, mission/ground.py) ---------------------------------
+
+@dataclass
+class TelemetryFrame:
+    """One downlinked item of the onboard queue, as the ground receives it."""
+
+    seq: int
+    kind: str
+    """status, pose, map, event or command_ack."""
+    msgtype: str
+    """ROS 2 type of ``payload``."""
+    step: int
+    radiated_s: float
+    """Simulated time at which the rover radiated it."""
+    payload: bytes
+    """CDR bytes of a ``msgtype`` message."""
+
+
+@dataclass
+class DownlinkAck:
+    """The ground's acknowledgement of downlinked sequence numbers."""
+
+    seqs: list[int]
+
+
+@dataclass
+class GroundCommand:
+    """A command from the ground station."""
+
+    id: int
+    verb: str
+    """pause, resume, abort, set, condition or planner."""
+    args: list[str] = field(default_factory=list)
+
+
+@dataclass
+class CommandAck:
+    """What the rover did with a ground command (downlinked as ``command_ack``)."""
+
+    id: int
+    verb: str
+    state: str
+    """executed or rejected."""
+    step: int
+    received_s: float
+    detail: str = ""
+
+
+@dataclass
+class MissionEvent:
+    """Something the ground should know (downlinked as ``event``; never dropped)."""
+
+    step: int
+    kind: str
+    detail: str = ""

@@ -6,19 +6,24 @@ import numpy as np
 import pytest
 
 from rovergate.keys import TOPICS
-from rovergate.messages import TYPESTORE, MessageError, decode, encode
+from rovergate.messages import TYPESTORE, MessageError, decode, decode_item, encode, encode_item
 from rovergate.types import (
     PLANNER_DTYPE,
     PREDICTED_DTYPE,
     SURFACE_DTYPE,
     XYZ_DTYPE,
     CameraIntrinsics,
+    CommandAck,
+    DownlinkAck,
     ExecutionReport,
+    GroundCommand,
+    MissionEvent,
     MissionStatus,
     PlannerMap,
     PlanPath,
     Pose,
     StepTiming,
+    TelemetryFrame,
 )
 
 rng = np.random.default_rng(0)
@@ -49,6 +54,19 @@ VALUES = {
     "timing": StepTiming(7, "plan", 0.125, 2),
     "truth_surface": (0, _cloud(XYZ_DTYPE)),
     "truth_occupancy": (0, _cloud(XYZ_DTYPE)),
+    "downlink": TelemetryFrame(12, "status", "rovergate_msgs/msg/MissionStatus", 7, 420.0,
+                               b"\x00\x01\x00\x00abc"),
+    "downlink_ack": DownlinkAck([3, 4, 9]),
+    "uplink": GroundCommand(5, "set", ["gate.k=3", "gate.epsilon_frac=0.05"]),
+}
+#: Topics whose step is 0 on the wire (queryables and the ground link's acks and commands).
+STEP_ZERO = ("truth_surface", "truth_occupancy", "downlink_ack", "uplink")
+ITEMS = {
+    "status": MissionStatus(7, 100, "running", "obs", 0.25, 1),
+    "pose": (7, pose),
+    "map": (7, _cloud(SURFACE_DTYPE)),
+    "event": MissionEvent(7, "module-restarted", "planner exited with code -9"),
+    "command_ack": CommandAck(5, "pause", "executed", 7, 420.0, "paused at step 7"),
 }
 
 
@@ -70,7 +88,7 @@ def test_every_topic_is_in_the_table():
 def test_round_trip_is_exact(topic):
     value = VALUES[topic]
     step, back = decode(topic, encode(topic, value))
-    assert step == 7 if topic not in ("truth_surface", "truth_occupancy") else step == 0
+    assert step == (0 if topic in STEP_ZERO else 7)
     expected = value[1] if isinstance(value, tuple) else value
     assert _equal(expected, back)
 
@@ -95,6 +113,17 @@ def test_truncated_message_raises_message_error(topic):
     data = encode(topic, VALUES[topic])
     with pytest.raises(MessageError):
         decode(topic, data[: len(data) // 2])
+
+
+@pytest.mark.parametrize("kind", sorted(ITEMS))
+def test_telemetry_items_round_trip_and_refuse_garbage(kind):
+    msgtype, payload = encode_item(kind, ITEMS[kind])
+    expected = ITEMS[kind][1] if isinstance(ITEMS[kind], tuple) else ITEMS[kind]
+    assert _equal(expected, decode_item(kind, msgtype, payload))
+    with pytest.raises(MessageError):
+        decode_item(kind, msgtype, payload[: len(payload) // 2])
+    with pytest.raises(MessageError, match="not one this version knows"):
+        decode_item(kind, "std_msgs/msg/String", payload)
 
 
 def test_wrong_shape_is_refused():

@@ -1,0 +1,222 @@
+"""The mission manager's link to Earth: the only bridge between the rover's network and the
+ground's.
+
+The rover's processes form one Zenoh network (the hub's session and the modules); the ground
+station joins another, which only this bridge's session listens on (``--contact.ground-listen``).
+Nothing crosses except what the bridge passes, and it passes traffic only as the contact plan
+allows (:mod:`mission.contact`):
+
+- Downlink: telemetry goes into the onboard queue (:mod:`mission.downlink`) as the mission
+  produces it. In each step of a window the bridge radiates items in priority order within the
+  step's rate budget; the ground receives them one light time later, in order of sequence
+  number, and acknowledges each.
+- Uplink: what the ground sends (acknowledgements, commands) waits for a window, is radiated
+  in it, and reaches the rover one light time later. Commands are handed to the mission, which
+  executes them at the next step boundary and downlinks a ``command_ack``.
+
+The bridge keeps its own clock of link steps: one per mission step, plus one per idle step
+while the mission is paused or drains its telemetry after the last step.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from mission.contact import ContactConfig, ContactPlan
+from mission.downlink import DownlinkQueue
+from rovergate.keys import Keys
+from rovergate.messages import MessageError, encode, encode_item
+from rovergate.node import cdr_encoding, check_and_decode
+from rovergate.session import SessionConfig, open_session
+from rovergate.types import (
+    SURFACE_DTYPE,
+    CommandAck,
+    DownlinkAck,
+    GroundCommand,
+    MissionEvent,
+    MissionStatus,
+    Pose,
+    TelemetryFrame,
+)
+
+log = logging.getLogger("rovergate.bridge")
+
+
+@dataclass
+class Delivered:
+    """A ground command as it reached the rover."""
+
+    command: GroundCommand
+    received_s: float
+    """Simulated time of arrival."""
+
+
+class GroundBridge:
+    """The ground-side Zenoh session, the onboard queue, and the link's timing."""
+
+    def __init__(self, cfg: ContactConfig, out: Path, session_cfg: SessionConfig | None = None
+                 ) -> None:
+        self.cfg = cfg
+        self.plan = ContactPlan(cfg)
+        self.queue = DownlinkQueue(out / "downlink.sqlite", int(cfg.queue_max_mb * 2**20))
+        self.keys = Keys(cfg.ground_namespace)
+        base = session_cfg or SessionConfig()
+        try:
+            self.session = open_session(SessionConfig(
+                mode="peer", listen=tuple(cfg.ground_listen), namespace=cfg.ground_namespace,
+                multicast_scouting=base.multicast_scouting))
+        except SystemExit:
+            self.queue.close()
+            raise SystemExit(
+                f"error: the ground endpoint {', '.join(cfg.ground_listen)} could not be "
+                "opened (is another mission using it?); pass --contact.ground-listen with a "
+                "free port, e.g. tcp/127.0.0.1:7449, or --contact.no-enabled") from None
+        self._pub = self.session.declare_publisher(
+            self.keys.key("downlink"), encoding=cdr_encoding("downlink"),
+            congestion_control=zenoh.CongestionControl.BLOCK)
+        self._lock = threading.Lock()
+        self._heard: list[Any] = []
+        self.dropped = 0
+        self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_ground(t))
+                      for t in ("downlink_ack", "uplink")]
+        self._station = False
+        self._station_sub = self.session.liveliness().declare_subscriber(
+            self.keys.alive("station"), self._on_station, history=True)
+        # The ground station watches this token: it goes when the mission manager does.
+        self._token = self.session.liveliness().declare_token(self.keys.alive("rover"))
+        self.clock = 0
+        """Link steps so far (the simulated time is clock * step_s)."""
+        self._held: list[Any] = []          # ground transmissions waiting for a window
+        self._to_rover: list[tuple[int, Any]] = []   # (arrival clock, ack or command)
+        self._to_ground: list[tuple[int, TelemetryFrame]] = []
+        self._budget = 0
+        self.radiated = 0
+        self.delivered = 0
+        self.dropped_reported = self.queue.dropped
+
+    # --- the ground network ---------------------------------------------------------------
+
+    def _on_ground(self, topic: str):
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                _, value = check_and_decode(topic, sample)
+            except MessageError as exc:
+                with self._lock:
+                    self.dropped += 1
+                log.warning("dropped a message from the ground on %s: %s",
+                            self.keys.key(topic), exc)
+                return
+            with self._lock:
+                self._heard.append(value)
+        return callback
+
+    def _on_station(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self._station = sample.kind == zenoh.SampleKind.PUT
+
+    @property
+    def station_connected(self) -> bool:
+        with self._lock:
+            return self._station
+
+    # --- telemetry ------------------------------------------------------------------------
+
+    def status(self, status: MissionStatus) -> None:
+        self._put("status", status.step, status)
+
+    def pose(self, step: int, pose: Pose) -> None:
+        self._put("pose", step, (step, pose))
+
+    def event(self, step: int, kind: str, detail: str = "") -> None:
+        log.info("event at step %d: %s %s", step, kind, detail)
+        self._put("event", step, MissionEvent(step, kind, detail))
+
+    def command_ack(self, ack: CommandAck) -> None:
+        self._put("command_ack", ack.step, ack)
+
+    def map_snapshot(self, step: int, surface: np.ndarray) -> None:
+        """The observed surface, thinned evenly to ``map_snapshot_points`` (it supersedes an
+        older snapshot not yet radiated)."""
+        n = self.cfg.map_snapshot_points
+        if len(surface) > n:
+            surface = surface[np.linspace(0, len(surface) - 1, n).astype(np.int64)]
+        self._put("map", step, (step, np.ascontiguousarray(surface, dtype=SURFACE_DTYPE)))
+
+    def _put(self, kind: str, step: int, value: Any) -> None:
+        msgtype, payload = encode_item(kind, value)
+        self.queue.put(kind, msgtype, step, payload)
+
+    # --- the link -------------------------------------------------------------------------
+
+    def tick(self) -> list[Delivered]:
+        """Advance the link by one step; returns the commands that reached the rover."""
+        k = self.clock
+        is_open = self.plan.is_open(k)
+        light = self.plan.light_steps
+        with self._lock:
+            heard, self._heard = self._heard, []
+        self._held.extend(heard)
+        if is_open and self._held:  # the ground radiates what it has
+            self._to_rover.extend((k + light, v) for v in self._held)
+            self._held = []
+        arrived = [v for t, v in self._to_rover if t <= k]
+        self._to_rover = [(t, v) for t, v in self._to_rover if t > k]
+        commands = []
+        for value in arrived:
+            if isinstance(value, DownlinkAck):
+                self.queue.ack(value.seqs)
+            elif isinstance(value, GroundCommand):
+                commands.append(Delivered(value, k * self.cfg.step_s))
+        dropped = self.queue.dropped
+        if dropped > self.dropped_reported:
+            self.event(k, "telemetry-dropped",
+                       f"{dropped - self.dropped_reported} status/pose samples dropped over "
+                       f"the {self.cfg.queue_max_mb:g} MB bound")
+            self.dropped_reported = dropped
+        if is_open:
+            self._budget += self.plan.bytes_per_step
+            items = self.queue.take(self._budget, k * self.cfg.step_s, self._ack_due_s(k))
+            for item in items:
+                self._budget -= len(item.payload)
+                self._to_ground.append((k + light, TelemetryFrame(
+                    item.seq, item.kind, item.msgtype, item.step, k * self.cfg.step_s,
+                    item.payload)))
+            self.radiated += len(items)
+        else:
+            self._budget = 0
+        due = [f for t, f in self._to_ground if t <= k]
+        self._to_ground = [(t, f) for t, f in self._to_ground if t > k]
+        for frame in sorted(due, key=lambda f: f.seq):
+            self._pub.put(encode("downlink", frame))
+        self.delivered += len(due)
+        self.clock += 1
+        return commands
+
+    def _ack_due_s(self, k: int) -> float:
+        """When the acknowledgement of a frame radiated at link step k should be back: it
+        reaches the ground at k + L, the ground answers at once (the bridge hears it by the
+        step after, one step of slack for the ground's own latency), the answer waits for a
+        window and travels L back."""
+        light = self.plan.light_steps
+        window = self.plan.next_open(k + light + 2)
+        return float("inf") if window is None else (window + light) * self.cfg.step_s
+
+    @property
+    def settled(self) -> bool:
+        """Nothing left to send, nothing on its way, every item acknowledged."""
+        return len(self.queue) == 0 and not self._to_ground and not self._to_rover
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._station_sub.undeclare()
+        self._token.undeclare()
+        self.session.close()
+        self.queue.close()

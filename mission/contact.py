@@ -1,0 +1,91 @@
+"""The contact plan: when the rover can talk to Earth, how late, and how fast.
+
+Time on the link is simulated: step t of the mission clock is at ``t * step_s`` simulated
+seconds, and the bridge acts once per step (at the step boundary), so every delay is rounded
+up to whole steps. A window ``[start, start + duration)`` (in steps) is when the link is up.
+Anything is *radiated* only inside a window, by either end, and *received* one light time
+later, window or not (a signal already on its way arrives). The downlink radiates at most
+``downlink_kbps`` per simulated second; budget left over at one step carries to the next step
+of the same window, not beyond it.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+
+from rovergate.config import ContactConfig
+
+
+class ContactPlanError(ValueError):
+    """A contact plan that cannot be used (the message says how to fix it)."""
+
+
+@dataclass
+class ContactPlan:
+    """Windows, light time and rate of one mission (derived from :class:`ContactConfig`)."""
+
+    cfg: ContactConfig
+    _explicit: list[tuple[int, int]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        c = self.cfg
+        for spec in c.windows:
+            m = re.fullmatch(r"\s*(\d+)\s*\+\s*(\d+)\s*", spec)
+            if not m or int(m.group(2)) < 1:
+                raise ContactPlanError(
+                    f"contact window {spec!r} is not START+DURATION in steps; write e.g. "
+                    "--contact.windows 10+5 40+3")
+            self._explicit.append((int(m.group(1)), int(m.group(2))))
+        if not self._explicit and (c.window_steps < 1 or c.period_steps < c.window_steps):
+            raise ContactPlanError(
+                f"contact plan needs 1 <= --contact.window-steps <= --contact.period-steps, "
+                f"got {c.window_steps} and {c.period_steps}")
+        if c.step_s <= 0 or c.light_time_s < 0 or c.downlink_kbps <= 0:
+            raise ContactPlanError("contact plan needs --contact.step-s > 0, "
+                                   "--contact.light-time-s >= 0 and --contact.downlink-kbps > 0")
+
+    def is_open(self, step: int) -> bool:
+        """Whether the link is up during step ``step``."""
+        if self._explicit:
+            return any(s <= step < s + d for s, d in self._explicit)
+        c = self.cfg
+        return step >= c.first_window_step and \
+            (step - c.first_window_step) % c.period_steps < c.window_steps
+
+    def next_open(self, step: int) -> int | None:
+        """The first step >= ``step`` with the link up (None: no window ever again)."""
+        if self._explicit:
+            later = [max(s, step) for s, d in self._explicit if s + d > step]
+            return min(later) if later else None
+        c = self.cfg
+        if step < c.first_window_step:
+            return c.first_window_step
+        phase = (step - c.first_window_step) % c.period_steps
+        return step if phase < c.window_steps else step + c.period_steps - phase
+
+    @property
+    def light_steps(self) -> int:
+        """Steps a signal takes to arrive (the light time, rounded up to whole steps)."""
+        return math.ceil(self.cfg.light_time_s / self.cfg.step_s - 1e-9)
+
+    @property
+    def bytes_per_step(self) -> int:
+        """What the downlink radiates in one step of an open window."""
+        return int(self.cfg.downlink_kbps * 1000 / 8 * self.cfg.step_s)
+
+    def windows_between(self, first: int, last: int) -> list[tuple[int, int]]:
+        """The windows overlapping steps ``first..last``, as (start, end exclusive)."""
+        out: list[tuple[int, int]] = []
+        t = first
+        while t <= last:
+            nxt = self.next_open(t)
+            if nxt is None or nxt > last:
+                break
+            end = nxt
+            while end <= last and self.is_open(end):
+                end += 1
+            out.append((nxt, end))
+            t = end
+        return out

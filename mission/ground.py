@@ -1,0 +1,258 @@
+"""``rovergate ground``: the ground station, a process of its own on the ground network.
+
+It connects to the mission manager's ground endpoint (it may run on another machine), shows
+and records every telemetry item that comes down, acknowledges each by sequence number, and
+sends commands up. What it received is kept in ``OUT/received.jsonl`` (one line per sequence
+number, never two) and the newest map snapshot in ``OUT/map_latest.npy``; both survive a
+restart of the station, which then goes on where it stopped.
+
+Commands (``--send`` at start, or typed on standard input, one per line)::
+
+    pause | resume | abort
+    set gate.k=3 [planner.n_candidates=16 ...]
+    condition gated
+    planner frontier | planner cmd python my_planner.py --flag
+
+A command travels only in a contact window and reaches the rover one light time later; the
+rover executes it at the next step boundary and downlinks a ``command_ack``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shlex
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from rovergate.keys import Keys
+from rovergate.logs import init_logging
+from rovergate.messages import MessageError, decode_item, encode
+from rovergate.node import STOP, cdr_encoding, check_and_decode
+from rovergate.session import SessionConfig, open_session
+from rovergate.types import (
+    CommandAck,
+    DownlinkAck,
+    GroundCommand,
+    MissionEvent,
+    MissionStatus,
+    Pose,
+    TelemetryFrame,
+)
+
+VERBS = ("pause", "resume", "abort", "set", "condition", "planner")
+
+
+@dataclass
+class GroundConfig:
+    """The ground station."""
+
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7448",)
+    """The mission manager's ground endpoints (its --contact.ground-listen)."""
+    namespace: str = "ground"
+    """Prefix of the ground network's keys (the mission's --contact.ground-namespace)."""
+    out: Path = Path("runs/ground")
+    """Where the station records what came down (received.jsonl, map_latest.npy)."""
+    send: tuple[str, ...] = ()
+    """Commands to send at start, each one quoted: --send "set gate.k=3" pause."""
+    stdin: bool = True
+    """Read further commands from standard input, one per line."""
+    until_mission_ends: bool = True
+    """Exit once the mission manager has gone (after it drained its telemetry)."""
+    timeout_s: float = 0.0
+    """Exit after this many seconds (0: no limit)."""
+
+
+def parse_command(line: str, command_id: int) -> GroundCommand:
+    """A typed command line -> :class:`GroundCommand`; ValueError says what is wrong."""
+    words = shlex.split(line)
+    if not words or words[0] not in VERBS:
+        raise ValueError(f"unknown command {line.strip()!r}; one of: {', '.join(VERBS)}")
+    verb, args = words[0], words[1:]
+    if verb in ("pause", "resume", "abort") and args:
+        raise ValueError(f"{verb} takes no arguments")
+    if verb == "set" and (not args or not all("=" in a for a in args)):
+        raise ValueError("set takes section.field=value pairs, e.g. set gate.k=3")
+    if verb in ("condition", "planner") and not args:
+        raise ValueError(f"{verb} needs a name, e.g. {verb} "
+                         f"{'gated' if verb == 'condition' else 'frontier'}")
+    return GroundCommand(command_id, verb, args)
+
+
+def summarize(kind: str, value) -> str:
+    if isinstance(value, MissionStatus):
+        return (f"{value.state} step {value.step}/{value.steps_total} coverage "
+                f"{value.coverage:.3f} collisions {value.collisions} ({value.condition})")
+    if isinstance(value, Pose):
+        x, y, z = value.position
+        return f"base at ({x:.2f}, {y:.2f}, {z:.2f}) yaw {np.degrees(value.yaw):.0f} deg"
+    if isinstance(value, MissionEvent):
+        return f"{value.kind}: {value.detail}" if value.detail else value.kind
+    if isinstance(value, CommandAck):
+        return (f"command {value.id} ({value.verb}) {value.state} at step {value.step}"
+                + (f": {value.detail}" if value.detail else ""))
+    if isinstance(value, np.ndarray):
+        return f"map snapshot of {len(value)} points"
+    return kind
+
+
+class GroundStation:
+    """Records downlinked items once each, acknowledges them, sends commands."""
+
+    def __init__(self, cfg: GroundConfig, log: logging.Logger) -> None:
+        self.cfg = cfg
+        self.log = log
+        self.keys = Keys(cfg.namespace)
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        self.received_path = cfg.out / "received.jsonl"
+        self.seen: set[int] = set()
+        self.next_id = 1
+        if self.received_path.exists():
+            for line in self.received_path.read_text().splitlines():
+                self.seen.add(int(json.loads(line)["seq"]))
+        sent_path = cfg.out / "sent.jsonl"
+        if sent_path.exists():
+            for line in sent_path.read_text().splitlines():
+                self.next_id = max(self.next_id, int(json.loads(line)["id"]) + 1)
+        self.duplicates = 0
+        self.dropped = 0
+        self._lock = threading.Lock()
+        self._file = open(self.received_path, "a")  # noqa: SIM115 -- closed in close()
+        self._sent = open(sent_path, "a")  # noqa: SIM115 -- closed in close()
+        self.session = open_session(SessionConfig(mode="peer", connect=tuple(cfg.connect),
+                                                  namespace=cfg.namespace))
+        self._ack = self.session.declare_publisher(
+            self.keys.key("downlink_ack"), encoding=cdr_encoding("downlink_ack"),
+            congestion_control=zenoh.CongestionControl.BLOCK)
+        self._uplink = self.session.declare_publisher(
+            self.keys.key("uplink"), encoding=cdr_encoding("uplink"),
+            congestion_control=zenoh.CongestionControl.BLOCK)
+        self._sub = self.session.declare_subscriber(self.keys.key("downlink"), self._on_frame)
+        self.rover_seen = threading.Event()
+        self.rover_gone = threading.Event()
+        self._rover_sub = self.session.liveliness().declare_subscriber(
+            self.keys.alive("rover"), self._on_rover, history=True)
+        self._token = self.session.liveliness().declare_token(self.keys.alive("station"))
+
+    def _on_rover(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.rover_seen.set()
+            self.log.info("the rover's mission manager is on the link")
+        elif self.rover_seen.is_set():
+            self.rover_gone.set()
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        try:
+            _, frame = check_and_decode("downlink", sample)
+        except MessageError as exc:
+            self.dropped += 1
+            self.log.warning("dropped a downlink frame: %s (%d dropped)", exc, self.dropped)
+            return
+        self._ack.put(encode("downlink_ack", DownlinkAck([frame.seq])))
+        with self._lock:
+            if frame.seq in self.seen:
+                self.duplicates += 1
+                return
+            self.seen.add(frame.seq)
+            self._record(frame)
+
+    def _record(self, frame: TelemetryFrame) -> None:
+        row: dict = {"seq": frame.seq, "kind": frame.kind, "step": frame.step,
+                     "radiated_s": frame.radiated_s, "received_wall": time.time(),
+                     "bytes": len(frame.payload)}
+        try:
+            value = decode_item(frame.kind, frame.msgtype, frame.payload)
+        except MessageError as exc:
+            self.log.warning("seq %d: %s", frame.seq, exc)
+            row["error"] = str(exc)
+        else:
+            if isinstance(value, MissionStatus):
+                row.update(state=value.state, coverage=value.coverage,
+                           collisions=value.collisions, condition=value.condition)
+            elif isinstance(value, Pose):
+                row.update(position=[float(v) for v in value.position], yaw=value.yaw)
+            elif isinstance(value, MissionEvent):
+                row.update(event=value.kind, detail=value.detail)
+            elif isinstance(value, CommandAck):
+                row.update(id=value.id, verb=value.verb, state=value.state,
+                           executed_step=value.step, received_s=value.received_s,
+                           detail=value.detail)
+            elif isinstance(value, np.ndarray):
+                np.save(self.cfg.out / "map_latest.npy", value)
+                row.update(points=len(value))
+            self.log.info("seq %d %-11s step %3d  %s", frame.seq, frame.kind, frame.step,
+                          summarize(frame.kind, value))
+        self._file.write(json.dumps(row) + "\n")
+        self._file.flush()
+
+    def send(self, line: str) -> GroundCommand | None:
+        """Send a typed command (once the mission manager's bridge listens)."""
+        try:
+            command = parse_command(line, self.next_id)
+        except ValueError as exc:
+            self.log.error("%s", exc)
+            return None
+        self.next_id += 1
+        # A put that no subscriber matches is lost: wait for the bridge to be on the link.
+        while not self._uplink.matching_status.matching and not STOP.is_set():
+            time.sleep(0.05)
+        self._uplink.put(encode("uplink", command))
+        self._sent.write(json.dumps({"id": command.id, "verb": command.verb,
+                                     "args": command.args, "sent_wall": time.time()}) + "\n")
+        self._sent.flush()
+        self.log.info("command %d sent: %s (it goes up in the next contact window)",
+                      command.id, line.strip())
+        return command
+
+    def close(self) -> None:
+        self._token.undeclare()
+        self._rover_sub.undeclare()
+        self._sub.undeclare()
+        self.session.close()
+        self._file.close()
+        self._sent.close()
+
+
+def gaps(seqs: set[int]) -> list[int]:
+    """Sequence numbers missing between the lowest and the highest received."""
+    if not seqs:
+        return []
+    return sorted(set(range(min(seqs), max(seqs) + 1)) - seqs)
+
+
+def main(cfg: GroundConfig) -> int:
+    log = init_logging("ground")
+    station = GroundStation(cfg, log)
+    log.info("ground station on %s (namespace %s); recording to %s",
+             ", ".join(cfg.connect), cfg.namespace, cfg.out)
+    try:
+        for line in cfg.send:
+            station.send(line)
+        if cfg.stdin and not sys.stdin.closed:
+            def read_stdin() -> None:
+                for line in sys.stdin:
+                    if line.strip():
+                        station.send(line)
+            threading.Thread(target=read_stdin, daemon=True).start()
+        deadline = time.monotonic() + cfg.timeout_s if cfg.timeout_s > 0 else None
+        while not STOP.is_set():
+            if cfg.until_mission_ends and station.rover_gone.is_set():
+                log.info("the mission manager left the link")
+                break
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+    finally:
+        station.close()
+    missing = gaps(station.seen)
+    log.info("received %d items (sequence %s), %d duplicates dropped, gaps: %s",
+             len(station.seen),
+             f"{min(station.seen)}..{max(station.seen)}" if station.seen else "none",
+             station.duplicates, missing or "none")
+    return 0

@@ -1,0 +1,277 @@
+"""The link to the ground: contact plan, the onboard store-and-forward queue, commands."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from mission.contact import ContactPlan, ContactPlanError
+from mission.downlink import DownlinkQueue
+from mission.ground import gaps, parse_command
+from mission.operations import CommandError, apply_settings
+from rovergate.config import ContactConfig, MissionConfig
+
+
+def test_periodic_and_explicit_windows():
+    plan = ContactPlan(ContactConfig(period_steps=25, window_steps=5, first_window_step=0))
+    assert [t for t in range(60) if plan.is_open(t)] == [*range(5), *range(25, 30),
+                                                         *range(50, 55)]
+    assert plan.next_open(3) == 3 and plan.next_open(5) == 25 and plan.next_open(49) == 50
+    assert plan.windows_between(0, 60) == [(0, 5), (25, 30), (50, 55)]
+    explicit = ContactPlan(ContactConfig(windows=("10+5", "40+3")))
+    assert explicit.next_open(0) == 10 and explicit.next_open(16) == 40
+    assert explicit.next_open(43) is None
+    assert explicit.windows_between(0, 100) == [(10, 15), (40, 43)]
+
+
+def test_light_time_and_rate_in_steps():
+    plan = ContactPlan(ContactConfig(step_s=60, light_time_s=90, downlink_kbps=128))
+    assert plan.light_steps == 2  # 1.5 steps, rounded up to the next step boundary
+    assert plan.bytes_per_step == 128_000 // 8 * 60
+    assert ContactPlan(ContactConfig(light_time_s=0)).light_steps == 0
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"windows": ("10-5",)}, "START\\+DURATION"),
+    ({"window_steps": 0}, "window-steps"),
+    ({"period_steps": 3, "window_steps": 5}, "period-steps"),
+    ({"step_s": 0}, "step-s"),
+])
+def test_bad_contact_plans_say_how_to_fix_them(kwargs, match):
+    with pytest.raises(ContactPlanError, match=match):
+        ContactPlan(ContactConfig(**kwargs))
+
+
+def _fill(q: DownlinkQueue, steps: int) -> None:
+    for t in range(steps):
+        q.put("status", "rovergate_msgs/msg/MissionStatus", t, b"s" * 100)
+        q.put("pose", "geometry_msgs/msg/PoseStamped", t, b"p" * 100)
+
+
+def test_queue_radiates_by_priority_and_numbers_contiguously(tmp_path: Path):
+    q = DownlinkQueue(tmp_path / "q.sqlite")
+    _fill(q, 3)
+    q.put("map", "sensor_msgs/msg/PointCloud2", 1, b"m1" * 100)
+    q.put("map", "sensor_msgs/msg/PointCloud2", 2, b"m2" * 100)  # supersedes the first
+    q.put("event", "rovergate_msgs/msg/MissionEvent", 2, b"e" * 50)
+    items = q.take(10_000, now_s=0.0, due_s=100.0)
+    assert [i.kind for i in items] == ["event", "status", "status", "status", "pose", "pose",
+                                       "pose", "map"]
+    assert [i.seq for i in items] == list(range(1, 9))
+    assert items[-1].payload == b"m2" * 100
+    # Nothing more to send until the acknowledgements are due.
+    assert q.take(10_000, now_s=50.0, due_s=150.0) == []
+    assert q.ack([1, 2, 3]) == 3
+    again = q.take(10_000, now_s=100.0, due_s=200.0)  # the rest is due: sent again
+    assert [i.seq for i in again] == [4, 5, 6, 7, 8]  # with the same numbers
+    q.ack([i.seq for i in again])
+    assert len(q) == 0 and q.unacked() == 0
+
+
+def test_queue_budget_stops_at_the_first_item_that_does_not_fit(tmp_path: Path):
+    q = DownlinkQueue(tmp_path / "q.sqlite")
+    q.put("status", "t", 0, b"x" * 300)
+    q.put("status", "t", 1, b"x" * 300)
+    q.put("pose", "t", 0, b"x" * 10)
+    assert [i.step for i in q.take(500, 0.0, 1.0)] == [0]
+    assert [i.kind for i in q.take(1000, 0.0, 1.0)] == ["status", "pose"]
+
+
+def test_queue_bound_drops_old_samples_never_events_nor_radiated_items(tmp_path: Path):
+    q = DownlinkQueue(tmp_path / "q.sqlite", max_bytes=2_000)
+    q.put("event", "t", 0, b"e" * 1500)
+    sent = q.take(10_000, 0.0, 1e9)
+    assert [i.kind for i in sent] == ["event"]
+    _fill(q, 20)  # 4000 bytes of samples into a 2000-byte bound
+    q.put("event", "t", 20, b"e" * 100)
+    assert q.nbytes() <= 2_000 + 100  # only the new event may stand over the bound
+    kinds = [k for (k,) in q._db.execute("SELECT kind FROM items ORDER BY id")]
+    assert kinds.count("event") == 2  # the radiated one is kept until acknowledged
+    steps = [s for (s,) in q._db.execute(
+        "SELECT step FROM items WHERE kind = 'status' ORDER BY id")]
+    assert steps and steps == sorted(steps) and steps[-1] == 19  # the oldest went first
+    assert q.dropped == 40 - len(steps) - len(
+        [1 for (k,) in q._db.execute("SELECT kind FROM items") if k == "pose"])
+
+
+_CRASH = """
+import os, sys
+from mission.downlink import DownlinkQueue
+q = DownlinkQueue(sys.argv[1])
+for t in range(50):
+    q.put("status", "t", t, bytes(200))
+q.take(2_000, 0.0, 10.0)   # radiates 10, numbered 1..10
+print("ready", flush=True)
+os.kill(os.getpid(), 9)     # the mission manager dies without closing anything
+"""
+
+
+def test_queue_survives_a_killed_mission_manager(tmp_path: Path):
+    path = tmp_path / "q.sqlite"
+    proc = subprocess.run([sys.executable, "-c", _CRASH, str(path)], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == -9 and "ready" in proc.stdout
+    q = DownlinkQueue(path)
+    assert len(q) == 50 and q.unacked() == 10
+    q.ack(list(range(1, 6)))
+    items = q.take(100_000, 20.0, 30.0)
+    # The unacknowledged five go again with their numbers; the rest continue the sequence.
+    assert [i.seq for i in items] == list(range(6, 51))
+    assert gaps({i.seq for i in items} | set(range(1, 6))) == []
+
+
+def test_corrupt_queue_file_is_one_clear_line(tmp_path: Path):
+    path = tmp_path / "q.sqlite"
+    path.write_bytes(b"not a database at all" * 100)
+    with pytest.raises(SystemExit, match="not a usable SQLite file.*move it away"):
+        DownlinkQueue(path)
+
+
+@pytest.mark.parametrize("line, verb, args", [
+    ("pause", "pause", []),
+    ("set gate.k=3 gate.epsilon_frac=0.05", "set", ["gate.k=3", "gate.epsilon_frac=0.05"]),
+    ("condition gated", "condition", ["gated"]),
+    ("planner cmd python my_planner.py --x 'a b'", "planner",
+     ["cmd", "python", "my_planner.py", "--x", "a b"]),
+])
+def test_ground_parses_commands(line, verb, args):
+    c = parse_command(line, 7)
+    assert (c.id, c.verb, c.args) == (7, verb, args)
+
+
+@pytest.mark.parametrize("line", ["jump", "pause now", "set gate.k", "condition", ""])
+def test_ground_refuses_malformed_commands(line):
+    with pytest.raises(ValueError):
+        parse_command(line, 1)
+
+
+def test_settings_change_in_flight_only_where_allowed():
+    cfg, modules = apply_settings(MissionConfig(), ["gate.k=3", "gate.epsilon_frac=0.05"])
+    assert (cfg.gate.k, cfg.gate.epsilon_frac, modules) == (3, 0.05, {"gate"})
+    cfg, modules = apply_settings(MissionConfig(), ["planner.name=beam"])
+    assert cfg.planner.name == "beam" and modules == {"planner"}
+    with pytest.raises(CommandError, match="cannot set 'sensor.width_px'"):
+        apply_settings(MissionConfig(), ["sensor.width_px=640"])
+    with pytest.raises(CommandError, match="gate.k takes a int"):
+        apply_settings(MissionConfig(), ["gate.k=three"])
+
+
+# --- end to end: the process set, the bridge and a ground station, in Zenoh peer mode ------
+
+ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+class Mission:
+    """A process-set mission with a ground station beside it, and the mission's status."""
+
+    def __init__(self, tmp_path: Path, *flags: str, steps: int) -> None:
+        from rovergate.session import free_loopback_port
+        self.port, ground_port = free_loopback_port(), free_loopback_port()
+        self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
+        self.proc = subprocess.Popen(
+            [*ROVERGATE, "run", "--steps", str(steps), "--no-progress", "--out", str(self.out),
+             "--listen", f"tcp/127.0.0.1:{self.port}",
+             "--contact.ground-listen", f"tcp/127.0.0.1:{ground_port}", *flags],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.ground = subprocess.Popen(
+            [*ROVERGATE, "ground", "--connect", f"tcp/127.0.0.1:{ground_port}", "--out",
+             str(self.ground_out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        threading.Thread(target=lambda: self.lines.extend(self.proc.stderr),
+                         daemon=True).start()
+        from test_health import _status_watcher
+        self.steps: list[int] = []
+        self.stop = threading.Event()
+        self.watcher = _status_watcher(self.port, self.steps, self.stop)
+
+    def wait_step(self, step: int, timeout_s: float = 240) -> int:
+        deadline = time.monotonic() + timeout_s
+        while max(self.steps, default=-1) < step:
+            assert self.proc.poll() is None, "".join(self.lines)[-3000:]
+            assert time.monotonic() < deadline, f"mission did not reach step {step}"
+            time.sleep(0.01)
+        return max(self.steps)
+
+    def command(self, line: str) -> None:
+        self.ground.stdin.write(line + "\n")
+        self.ground.stdin.flush()
+
+    def finish(self, timeout_s: float = 300) -> tuple[dict, list[dict], str]:
+        try:
+            assert self.proc.wait(timeout_s) == 0, "".join(self.lines)[-4000:]
+            ground_out, _ = self.ground.communicate(timeout=60)
+        finally:
+            self.stop.set()
+            for p in (self.proc, self.ground):
+                if p.poll() is None:
+                    p.kill()
+        assert self.ground.returncode == 0, ground_out[-3000:]
+        metrics = json.loads((self.out / "metrics.json").read_text())
+        rows = [json.loads(line) for line in
+                (self.ground_out / "received.jsonl").read_text().splitlines()]
+        return metrics, rows, ground_out
+
+
+def test_telemetry_crosses_blackouts_whole_and_commands_wait_for_a_window(tmp_path: Path):
+    """Windows of 2 steps every 6, light time 1 step: four blackouts in 24 steps. Every
+    status reaches the ground once, numbered without a gap; a command sent in a blackout
+    executes at the next window's opening plus the light time."""
+    steps = 24
+    plan = ContactPlan(ContactConfig(period_steps=6, window_steps=2, first_window_step=2,
+                                     light_time_s=60, step_s=60))
+    m = Mission(tmp_path, "--contact.period-steps", "6", "--contact.window-steps", "2",
+                "--contact.first-window-step", "2", "--contact.light-time-s", "60",
+                steps=steps)
+    sent_at = m.wait_step(10)  # steps 10 and 11: a blackout (windows at 8-9 and 14-15)
+    assert not plan.is_open(sent_at) and not plan.is_open(sent_at + 1)
+    m.command("set planner.n_candidates=24")
+    metrics, rows, ground_log = m.finish()
+    seqs = [r["seq"] for r in rows]
+    assert seqs == list(range(1, len(rows) + 1))  # no gap, no duplicate, in order
+    status_steps = sorted(r["step"] for r in rows if r["kind"] == "status")
+    assert status_steps == [*range(steps + 1), steps]  # every step, and the final status
+    assert [r["state"] for r in rows if r["kind"] == "status"][-1] == "done"
+    assert len(plan.windows_between(0, steps)) >= 4  # so at least three blackouts between
+    # Radiated only inside windows.
+    for r in rows:
+        assert plan.is_open(int(r["radiated_s"] // 60)), r
+    acks = [r for r in rows if r["kind"] == "command_ack"]
+    assert len(acks) == 1 and acks[0]["state"] == "executed", acks
+    expected = plan.next_open(sent_at + 1) + plan.light_steps
+    assert acks[0]["executed_step"] == expected
+    (command,) = metrics["link"]["commands"]
+    assert command["step"] == expected and command["verb"] == "set"
+    events = [r["event"] for r in rows if r["kind"] == "event"]
+    assert events[0] == "mission-started" and "reconfigured" in events and \
+        "mission-done" in events
+    assert metrics["link"]["undelivered"] == 0
+    assert "gaps: none" in ground_log
+
+
+def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
+    """A ground command replaces the built-in planner with a program that only knows zenoh
+    and rosbags (examples/frontier_planner.py); it plans every later step."""
+    steps = 14
+    m = Mission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
+                "--contact.light-time-s", "0", steps=steps)
+    m.wait_step(3)
+    m.command(f"planner cmd {sys.executable} {EXAMPLES / 'frontier_planner.py'}")
+    metrics, rows, _ = m.finish()
+    (command,) = metrics["link"]["commands"]
+    assert command["state"] == "executed", command
+    swapped = command["step"]
+    assert 4 <= swapped < steps
+    log = (m.out / "logs" / "planner.log").read_text()
+    planned = sorted(int(s) for s in re.findall(r"frontier planner: step (\d+)", log))
+    assert planned == list(range(swapped, steps)), (swapped, planned)
+    assert metrics["state"] == "done" and len(metrics["coverage"]) == steps + 1
+    assert metrics["coverage"][-1] > metrics["coverage"][swapped]
