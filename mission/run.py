@@ -27,6 +27,15 @@ def check_runnable(cfg: MissionConfig) -> None:
     mission_checkpoint(cfg)  # a missing or corrupt checkpoint stops the mission here
     if cfg.steps < 1:
         raise SystemExit(f"error: --steps must be at least 1, got {cfg.steps}")
+    if cfg.in_process and cfg.planner.command:
+        raise SystemExit("error: --planner.command runs a planner program, which needs the "
+                         "process set; leave out --in-process")
+    if cfg.contact.enabled and not cfg.in_process:
+        from mission.contact import ContactPlan, ContactPlanError
+        try:
+            ContactPlan(cfg.contact)
+        except ContactPlanError as exc:
+            raise SystemExit(f"error: {exc}") from None
 
 
 def main(cfg: MissionConfig) -> int:

@@ -275,3 +275,45 @@ def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
     assert planned == list(range(swapped, steps)), (swapped, planned)
     assert metrics["state"] == "done" and len(metrics["coverage"]) == steps + 1
     assert metrics["coverage"][-1] > metrics["coverage"][swapped]
+
+
+def _wait_for_row(path: Path, pred, timeout_s: float = 240) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.exists():
+            for line in path.read_text().splitlines():
+                row = json.loads(line)
+                if pred(row):
+                    return row
+        time.sleep(0.05)
+    raise AssertionError(f"nothing matching came down in {timeout_s:.0f} s")
+
+
+def test_condition_change_pause_resume_and_abort_from_the_ground(tmp_path: Path):
+    """The mission starts under obs; the ground switches it to the gated filter (the mapper
+    and the gate restart with the model on and replay the past), pauses it, resumes it and
+    aborts it."""
+    m = Mission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
+                "--contact.light-time-s", "0", steps=60)
+    received = m.ground_out / "received.jsonl"
+    m.wait_step(1)
+    m.command("condition gated")
+    changed = _wait_for_row(received, lambda r: r.get("verb") == "condition")
+    assert changed["state"] == "executed", changed
+    m.command("pause")
+    paused = _wait_for_row(received, lambda r: r.get("event") == "paused")
+    time.sleep(1.0)
+    held = max(m.steps)
+    m.command("resume")
+    _wait_for_row(received, lambda r: r.get("event") == "resumed")
+    m.command("abort")
+    metrics, rows, _ = m.finish()
+    assert metrics["state"] == "aborted" and len(metrics["coverage"]) < 61
+    states = {c["verb"]: c["state"] for c in metrics["link"]["commands"]}
+    assert states == {"condition": "executed", "pause": "executed", "resume": "executed",
+                      "abort": "executed"}
+    step = changed["executed_step"]
+    predicted = metrics["predicted_points_per_step"]
+    assert not any(predicted[:step]) and any(predicted[step:])  # the model runs from then on
+    assert held == paused["step"]  # nothing moved while paused
+    assert [r["state"] for r in rows if r["kind"] == "status"][-1] == "aborted"
