@@ -45,17 +45,25 @@ def oracle_tags(predicted_xyz: np.ndarray, reference_xyz: np.ndarray, delta_m: f
     return OracleTags(d_pred > delta_m, reference_xyz[d_ref > delta_m])
 
 
+def observed_radius_m(cfg) -> float:
+    """How near an observed point must be for a map point to count as observed: the radius
+    the planner's gain uses (1.5 mapper voxels)."""
+    return 1.5 * cfg.mapper.voxel_m
+
+
 class Gate:
     """Composes S_t, the prediction and (oracle conditions only) ground truth for the planner."""
 
     def __init__(self, condition: str, cfg: GateConfig, sensor: SensorConfig, d_scene_m: float,
-                 reference_xyz: np.ndarray | None = None) -> None:
+                 reference_xyz: np.ndarray | None = None, observed_radius_m: float = 0.0
+                 ) -> None:
         self.condition = get_condition(condition)
         if self.condition.needs_truth and reference_xyz is None:
             raise ValueError(f"condition {condition!r} needs the reference occupancy")
         self.reference_xyz = reference_xyz
         self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
         self.delta_m = cfg.oracle_delta_frac * d_scene_m
+        self.observed_radius_m = observed_radius_m
         self.filter = ObservationGate(cfg.k, cfg.epsilon_frac * d_scene_m, sensor.min_range_m,
                                       sensor.max_range_m)
 
@@ -74,8 +82,17 @@ class Gate:
                               views=surface["views"])
         name = self.condition.name
         if name == "truth":
-            return PlannerMap(mapped.step, make_cloud(self.reference_xyz, PLANNER_DTYPE,
-                                                      source=Source.TRUTH))
+            # O* alone (equation 2), each point carrying the views of the nearest S_t point
+            # within the planner's observed radius: what the reconstruction has seen, without
+            # which every truth point would stay novel and draw the planner back for ever.
+            ref = self.reference_xyz
+            views = np.zeros(len(ref), dtype=np.uint16)
+            if len(s_xyz) and self.observed_radius_m > 0:
+                d, i = kdtree(s_xyz).query(ref, distance_upper_bound=self.observed_radius_m)
+                hit = np.isfinite(d)
+                views[hit] = surface["views"][i[hit]]
+            return PlannerMap(mapped.step, make_cloud(ref, PLANNER_DTYPE, source=Source.TRUTH,
+                                                      views=views))
         if name == "obs":
             return PlannerMap(mapped.step, observed)
         pred = xyz(mapped.predicted)

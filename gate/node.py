@@ -6,7 +6,7 @@ import time
 from typing import Any
 
 from gate.conditions import get_condition
-from gate.gate import Gate
+from gate.gate import Gate, observed_radius_m
 from rovergate.config import MissionConfig
 from rovergate.logs import init_logging
 from rovergate.node import Input, ModuleNode
@@ -29,7 +29,8 @@ def main(cfg: MissionConfig, resume_step: int = 0) -> int:
             node.close()
             raise
         log.info("oracle condition %s: %d reference points", condition.name, len(reference))
-    gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
+    gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference,
+                observed_radius_m=observed_radius_m(cfg))
 
     def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
         t0 = time.perf_counter()

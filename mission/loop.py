@@ -7,7 +7,7 @@ import time
 from scipy.spatial import cKDTree
 
 from gate.conditions import get_condition
-from gate.gate import Gate
+from gate.gate import Gate, observed_radius_m
 from mapper.mapper import Mapper
 from mission.coverage import CoverageEvaluator
 from mission.metrics import suppression_audit
@@ -26,7 +26,8 @@ def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
     try:
         mapper = Mapper.for_mission(cfg)
         reference = sim.truth_occupancy() if get_condition(cfg.condition).needs_truth else None
-        gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference)
+        gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference,
+                    observed_radius_m=observed_radius_m(cfg))
         planner = make_planner(cfg)
         evaluator = CoverageEvaluator(sim.truth_surface(), cfg.eval.tau_frac * cfg.scene.d_scene_m)
         # Evaluation only: which of the points the gate withheld were true false positives.

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gate.gate import observed_radius_m
 from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
@@ -54,7 +55,7 @@ class Planner(abc.ABC):
         rng = np.random.default_rng([cfg.seed, step])
         k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
                                       sensor.vfov_deg).scaled(pc.gain_resolution)
-        novel = novel_mask(occupancy, pc.observed_min_views, cfg.mapper.voxel_m * 1.5)
+        novel = novel_mask(occupancy, pc.observed_min_views, observed_radius_m(cfg))
         field = GainField(points, novel, pc.gain_voxel_m, k, sensor.min_range_m,
                           sensor.max_range_m, pc.zbuffer_tolerance_m)
         return model, rng, field
@@ -64,13 +65,14 @@ def novel_mask(occupancy: PlannerMap, observed_min_views: int, radius_m: float) 
     """(N,) bool: map points not yet observed.
 
     An observed-surface point is novel until it was seen in ``observed_min_views`` frames
-    (surface glimpsed once, far away or at a grazing angle, is worth another look). Any other
-    point (prediction, oracle, truth) is novel unless a well-observed surface point lies within
-    ``radius_m`` of it.
+    (surface glimpsed once, far away or at a grazing angle, is worth another look); so is a
+    truth point, whose views are those of the nearest observed point (the gate sets them).
+    Any other point (prediction, oracle) is novel unless a well-observed surface point lies
+    within ``radius_m`` of it.
     """
     pts = occupancy.points
     src, views = pts["source"], pts["views"]
-    observed = src == Source.OBSERVED
+    observed = (src == Source.OBSERVED) | (src == Source.TRUTH)
     well = observed & (views >= observed_min_views)
     novel = observed & ~well
     others = np.flatnonzero(~observed)

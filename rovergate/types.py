@@ -157,7 +157,8 @@ class Source:
     ORACLE_FN = 2
     """A reference point restored as an oracle false negative (condition ``learned+fn``)."""
     TRUTH = 3
-    """A reference occupied sample (condition ``truth``)."""
+    """A reference occupied sample (condition ``truth``); its ``views`` are those of the
+    nearest S_t point within 1.5 mapper voxels (0: not observed yet)."""
 
 
 def xyz(cloud: np.ndarray) -> np.ndarray:

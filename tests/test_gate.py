@@ -18,6 +18,7 @@ from rovergate.types import (
     Pose,
     Source,
     make_cloud,
+    xyz,
 )
 
 K = CameraIntrinsics.from_fov(64, 48, 45.0)
@@ -146,3 +147,20 @@ def test_unsupported_equals_equation_4_computed_directly():
     assert 0 < expected.sum() < len(pts)
     assert np.array_equal(g.unsupported(pts, surface), expected)
     assert np.array_equal(np.minimum(g.exposure_counts(pts, stop_at=2), 2), np.minimum(counts, 2))
+
+
+def test_truth_points_carry_what_the_reconstruction_has_seen():
+    """Under truth the map is O* alone, and each point carries the views of the nearest S_t
+    point within the observed radius, so the planner's gain decays as the scene is seen."""
+    from planner.planner import novel_mask
+    ref = np.array([[0, 0, 0], [5, 5, 0], [9, 9, 9]], dtype=np.float32)
+    surface = np.array([[0, 0, 0.05], [5, 5.1, 0]], dtype=np.float32)
+    gate = Gate("truth", GateConfig(), SensorConfig(), d_scene_m=10.0, reference_xyz=ref,
+                observed_radius_m=0.2)
+    mapped = _mapped(surface, np.zeros((0, 3), np.float32))
+    mapped.surface["views"] = [3, 1]
+    out = gate.step(mapped, Pose.from_matrix(camera_looking_along_x()), K)
+    assert np.array_equal(xyz(out.points), ref)  # equation 2: the geometry is O* exactly
+    assert out.points["views"].tolist() == [3, 1, 0]
+    # Seen in 2 frames or more: no longer novel; once or never: still worth a look.
+    assert novel_mask(out, observed_min_views=2, radius_m=0.2).tolist() == [False, True, True]
