@@ -65,8 +65,12 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
 class Operations:
     """The link, pause and abort, and in-flight reconfiguration of one process-set mission."""
 
+    @property
+    def cfg(self) -> MissionConfig:
+        """The mission's configuration as it stands (the hub's: commands change it)."""
+        return self.hub.cfg
+
     def __init__(self, cfg: MissionConfig, out: Path, hub) -> None:
-        self.cfg = cfg
         self.hub = hub
         self.bridge = GroundBridge(cfg.contact, out, cfg.session)
         c, plan = cfg.contact, self.bridge.plan
@@ -158,7 +162,6 @@ class Operations:
             raise CommandError(f"unknown verb {verb!r}")
         t0 = time.monotonic()
         self.hub.reconfigure(cfg, sorted(modules), step)
-        self.cfg = cfg
         seconds = time.monotonic() - t0
         self.reconfigurations.append({"step": step, "verb": verb, "args": args,
                                       "modules": sorted(modules), "seconds": seconds})
@@ -208,6 +211,7 @@ class Operations:
         return {"link_steps": self.bridge.clock, "drain_idle_steps": idle,
                 "drain_wall_s": time.monotonic() - t0, "radiated": self.bridge.radiated,
                 "undelivered": left, "dropped_telemetry": self.bridge.queue.dropped,
+                "dropped_ground_messages": self.bridge.dropped,
                 "commands": self.commands, "reconfigurations": self.reconfigurations}
 
     def close(self) -> None:
