@@ -98,7 +98,6 @@ class GroundBridge:
         self._to_ground: list[tuple[int, TelemetryFrame]] = []
         self._budget = 0
         self.radiated = 0
-        self.delivered = 0
         self.dropped_reported = self.queue.dropped
 
     # --- the ground network ---------------------------------------------------------------
@@ -195,7 +194,6 @@ class GroundBridge:
         self._to_ground = [(t, f) for t, f in self._to_ground if t > k]
         for frame in sorted(due, key=lambda f: f.seq):
             self._pub.put(encode("downlink", frame))
-        self.delivered += len(due)
         self.clock += 1
         return commands
 

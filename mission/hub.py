@@ -100,7 +100,6 @@ class Hub:
         self.last_seen: dict[str, int] = {}
         self.t0 = time.monotonic()
         self.events: list[RestartEvent] = []
-        self.restarts: dict[str, int] = {m: 0 for m in MODULES}
         self._resuming: dict[str, RestartEvent] = {}
         self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_sample(t))
                       for t in set(self.WATCHED) | (self.journal.topics - {"status"})]
@@ -170,9 +169,9 @@ class Hub:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._alive.add(name)
                 self._ever_alive.add(name)
-                for event in self.events:
-                    if event.module == name and event.ready_s is None:
-                        event.ready_s = self.elapsed()
+                event = self._resuming.get(name)
+                if event is not None and event.ready_s is None:
+                    event.ready_s = self.elapsed()
             else:
                 self._alive.discard(name)
             self._cv.notify_all()
@@ -247,10 +246,8 @@ class Hub:
                 except subprocess.TimeoutExpired:
                     self.procs[name].kill()
                     self.procs[name].wait()
-                self._alive.discard(name)
-                self._ever_alive.discard(name)
             for name in modules:
-                self._spawn(name, resume_step=step)
+                self._respawn(name, step)
         self._wait(lambda: self._alive.issuperset(modules),
                    "the liveliness tokens of the restarted " + ", ".join(modules),
                    self.cfg.ready_timeout_s)
@@ -261,23 +258,27 @@ class Hub:
         if p.poll() is None:
             p.kill()
             p.wait()
-        self._alive.discard(name)
-        self._ever_alive.discard(name)
-        self.restarts[name] += 1
-        if self.restarts[name] > self.cfg.max_restarts:
+        restarts = 1 + sum(e.module == name for e in self.events)
+        if restarts > self.cfg.max_restarts:
             raise MissionFailed(
-                f"module {name!r} {reason} during the mission, after {self.restarts[name] - 1} "
+                f"module {name!r} {reason} during the mission, after {restarts - 1} "
                 f"restarts (--max-restarts {self.cfg.max_restarts}); its log is "
                 f"{self.out / 'logs' / (name + '.log')}:\n{_tail(self.out, name)}")
         # Resume at the last step whose output the mission has seen, redone: whatever of it
         # reached others again is a duplicate of the same bytes, which they ignore.
         step = max(0, self.last_seen.get(PROGRESS_TOPIC[name], 0))
         log.warning("module %s %s at step %d; the rover holds still while it restarts "
-                    "(restart %d of at most %d)", name, reason, step, self.restarts[name],
+                    "(restart %d of at most %d)", name, reason, step, restarts,
                     self.cfg.max_restarts)
         event = RestartEvent(name, step, reason, died)
         self.events.append(event)
         self._resuming[name] = event
+        self._respawn(name, step)
+
+    def _respawn(self, name: str, step: int) -> None:
+        """Start ``name`` again (its old process has exited), resuming at ``step``."""
+        self._alive.discard(name)
+        self._ever_alive.discard(name)
         self._spawn(name, resume_step=step)
 
     def _wait(self, ready, what: str, timeout_s: float, restart: bool = True) -> None:
@@ -393,7 +394,7 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
     collisions = 0
     ops = None
     try:
-        ops = Operations(cfg, out, hub) if cfg.contact.enabled else None
+        ops = Operations(hub) if cfg.contact.enabled else None
         hub.launch(config_path)
         hub.wait_ready()
         log.info("all modules ready: %s", ", ".join(MODULES))
@@ -401,8 +402,7 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
         evaluator = CoverageEvaluator(truth_surface, cfg.eval.tau_frac * cfg.scene.d_scene_m)
         # Evaluation only: the reference occupancy O* (as the simulator derives it) to audit
         # what the gate withheld.
-        audit_ref = voxel_first_points(truth_surface, cfg.mapper.voxel_m)
-        audit_tree = None
+        audit_ref = audit_tree = None  # built when the condition is (or becomes) gated
         delta_m = cfg.gate.oracle_delta_frac * cfg.scene.d_scene_m
         if ops:
             ops.bridge.event(0, "mission-started",
@@ -435,7 +435,9 @@ def run_processes(cfg: MissionConfig, on_step=None) -> MissionRecord:
                 record.predicted_points.append(len(predicted))
                 record.planner_predicted.append(kept)
                 if condition == "gated":
-                    audit_tree = audit_tree or cKDTree(audit_ref)
+                    if audit_ref is None:
+                        audit_ref = voxel_first_points(truth_surface, cfg.mapper.voxel_m)
+                        audit_tree = cKDTree(audit_ref)
                     record.suppressed_fp.append(suppression_audit(
                         xyz(predicted), xyz(kept_points), audit_ref, delta_m, audit_tree)[1])
                 # The map message has no count of what the gate withheld; under the gate,

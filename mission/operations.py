@@ -18,7 +18,6 @@ import dataclasses
 import json
 import logging
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -70,9 +69,10 @@ class Operations:
         """The mission's configuration as it stands (the hub's: commands change it)."""
         return self.hub.cfg
 
-    def __init__(self, cfg: MissionConfig, out: Path, hub) -> None:
+    def __init__(self, hub) -> None:
         self.hub = hub
-        self.bridge = GroundBridge(cfg.contact, out, cfg.session)
+        cfg = hub.cfg
+        self.bridge = GroundBridge(cfg.contact, hub.out, cfg.session)
         c, plan = cfg.contact, self.bridge.plan
         windows = plan.windows_between(0, cfg.steps)
         log.info("link to the ground on %s (`rovergate ground --connect ...` to follow): "
