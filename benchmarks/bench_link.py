@@ -80,7 +80,7 @@ def bench_recovery(tmp: Path, rounds: int) -> None:
         port = free_loopback_port()
         out = tmp / f"mission-{r}"
         proc = subprocess.Popen(
-            [sys.executable, "-m", "rovergate.cli", "run", "--steps", "12", "--condition",
+            [sys.executable, "-m", "mission.cli", "run", "--steps", "12", "--condition",
              "gated", "--no-progress", "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}",
              "--contact.no-enabled"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
             text=True)

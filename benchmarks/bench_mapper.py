@@ -93,7 +93,7 @@ def main() -> None:
                     f"{k} {1000 * statistics.median(v):.1f}" for k, v in split.items()))
         print(f"ratio learned / obs: {med['learned'] / med['obs']:.1f}")
         out = tmp / "procs"
-        r = subprocess.run([sys.executable, "-m", "rovergate.cli", "run", "--condition",
+        r = subprocess.run([sys.executable, "-m", "mission.cli", "run", "--condition",
                             "learned", "--steps", "15", "--no-progress", "--out", str(out)],
                            capture_output=True, text=True, timeout=600)
         if r.returncode != 0:

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gate.conditions import get_condition
 from gate.filter import ObservationGate
+from rovergate.conditions import get_condition
 from rovergate.config import GateConfig, SensorConfig
 from rovergate.spatial import kdtree
 from rovergate.types import (
@@ -43,12 +43,6 @@ def oracle_tags(predicted_xyz: np.ndarray, reference_xyz: np.ndarray, delta_m: f
     d_pred, _ = tree.query(predicted_xyz, distance_upper_bound=delta_m)
     d_ref, _ = kdtree(predicted_xyz).query(reference_xyz, distance_upper_bound=delta_m)
     return OracleTags(d_pred > delta_m, reference_xyz[d_ref > delta_m])
-
-
-def observed_radius_m(cfg) -> float:
-    """How near an observed point must be for a map point to count as observed: the radius
-    the planner's gain uses (1.5 mapper voxels)."""
-    return 1.5 * cfg.mapper.voxel_m
 
 
 class Gate:

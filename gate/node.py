@@ -1,46 +1,44 @@
-"""The gate as a process: builds the planner-facing occupancy of the mission's condition."""
+"""The gate as a node of the graph (``MODULES["gate"]``): the planner-facing occupancy of the
+mission's condition. Transport-free (see :mod:`rovergate.module`)."""
 
 from __future__ import annotations
 
+import logging
 import time
-from typing import Any
+from typing import Any, ClassVar
 
-from gate.conditions import get_condition
-from gate.gate import Gate, observed_radius_m
+from gate.gate import Gate
+from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig
-from rovergate.logs import init_logging
-from rovergate.node import Input, ModuleNode
+from rovergate.graph import MODULES, Module
+from rovergate.module import Ask, StatelessLogic, StepOutput
 from rovergate.types import MapperOutput, xyz
 
+log = logging.getLogger("rovergate.gate")
 
-def main(cfg: MissionConfig, resume_step: int = 0) -> int:
-    log = init_logging("gate")
-    condition = get_condition(cfg.condition)
-    node = ModuleNode("gate", cfg.session,
-                      inputs={"surface": Input("surface"), "predicted": Input("predicted"),
-                              "pose": Input("pose"), "info": Input("camera_info")},
-                      outputs=["planner_map"], log=log)
-    reference = None
-    if condition.needs_truth:
-        # Oracle conditions only: the one place outside evaluation that asks for truth.
-        try:
-            reference = xyz(node.query("truth_occupancy", cfg.ready_timeout_s))
-        except BaseException:
-            node.close()
-            raise
-        log.info("oracle condition %s: %d reference points", condition.name, len(reference))
-    gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference,
-                observed_radius_m=observed_radius_m(cfg))
 
-    def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
+class GateNode(StatelessLogic):
+    """:class:`rovergate.module.ModuleLogic` of the gate."""
+
+    spec: ClassVar[Module] = MODULES["gate"]
+
+    def __init__(self, cfg: MissionConfig, ask: Ask | None = None) -> None:
+        condition = get_condition(cfg.condition)
+        reference = None
+        if condition.needs_truth:
+            # Oracle conditions only: the one place outside evaluation that asks for truth.
+            if ask is None:
+                raise ValueError(f"condition {condition.name} needs the reference occupancy")
+            reference = xyz(ask("truth_occupancy"))
+            log.info("oracle condition %s: %d reference points", condition.name, len(reference))
+        self.gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference,
+                         observed_radius_m=cfg.observed_radius_m)
+
+    def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()
         mapped = MapperOutput(step, inputs["surface"], inputs["predicted"])
-        occupancy = gate.step(mapped, inputs["pose"], inputs["info"])
-        seconds = time.perf_counter() - t0
-        node.publish("planner_map", occupancy)
-        return {"gate": seconds}
+        occupancy = self.gate.step(mapped, inputs["pose"], inputs["info"])
+        return StepOutput([("planner_map", occupancy)], {"gate": time.perf_counter() - t0})
 
-    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1,
-                    resume_step=resume_step,
-                    restore=lambda step, inputs: gate.restore(inputs["pose"], inputs["info"]),
-                    restore_inputs={"pose": Input("pose"), "info": Input("camera_info")})
+    def restore(self, step: int, inputs: dict[str, Any]) -> None:
+        self.gate.restore(inputs["pose"], inputs["info"])

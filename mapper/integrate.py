@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rovergate.geometry import voxel_keys
 from rovergate.types import CameraIntrinsics
-
-_OFFSET = 1 << 20  # voxel indices are shifted into [0, 2^21) so they pack into one int64
 
 
 def backproject(depth_m: np.ndarray, k: CameraIntrinsics, T_map_camera: np.ndarray) -> np.ndarray:
@@ -15,18 +14,6 @@ def backproject(depth_m: np.ndarray, k: CameraIntrinsics, T_map_camera: np.ndarr
     z = depth_m[v, u].astype(np.float64)
     p_cam = np.stack([(u - k.cx) * z / k.fx, (v - k.cy) * z / k.fy, z], axis=1)
     return (p_cam @ T_map_camera[:3, :3].T + T_map_camera[:3, 3]).astype(np.float32)
-
-
-def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """(N,) int64 key of the voxel that holds each point."""
-    idx = np.floor(points.astype(np.float64) / voxel_m).astype(np.int64) + _OFFSET
-    return (idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2]
-
-
-def voxel_first_points(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """The first point of each occupied voxel, in order of first appearance."""
-    _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)
-    return points[np.sort(first)]
 
 
 class VoxelSurface:

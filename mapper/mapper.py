@@ -7,7 +7,9 @@ import numpy as np
 from mapper.grid import GridSpec, OccupancyGrid
 from mapper.integrate import VoxelSurface, backproject
 from mapper.model import Checkpoint, OccupancyPredictor, load_checkpoint
+from rovergate.conditions import get_condition
 from rovergate.config import MapperConfig, MissionConfig
+from rovergate.errors import ConfigError
 from rovergate.types import (
     PREDICTED_DTYPE,
     SURFACE_DTYPE,
@@ -21,22 +23,21 @@ PREDICTION_MODES = ("auto", "on", "off")
 
 def wants_prediction(cfg: MissionConfig) -> bool:
     """Whether the mission's mapper runs the learned model (``--mapper.prediction``)."""
-    from gate.conditions import get_condition
     mode = cfg.mapper.prediction
     if mode not in PREDICTION_MODES:
-        raise SystemExit(f"error: --mapper.prediction {mode!r} is not a mode; choose one of: "
-                         f"{', '.join(PREDICTION_MODES)}")
+        raise ConfigError(f"--mapper.prediction {mode!r} is not a mode; choose one of: "
+                          f"{', '.join(PREDICTION_MODES)}")
     if mode == "auto":
         return get_condition(cfg.condition).needs_prediction
     if mode == "off" and get_condition(cfg.condition).needs_prediction:
-        raise SystemExit(f"error: condition {cfg.condition!r} needs the learned prediction, "
-                         "but --mapper.prediction is off; use auto or on")
+        raise ConfigError(f"condition {cfg.condition!r} needs the learned prediction, "
+                          "but --mapper.prediction is off; use auto or on")
     return mode == "on"
 
 
 def mission_checkpoint(cfg: MissionConfig) -> Checkpoint | None:
     """The model a mission's mapper runs (None: it publishes no prediction). A missing or
-    corrupt checkpoint is a one-line SystemExit."""
+    corrupt checkpoint raises CheckpointError."""
     if not wants_prediction(cfg):
         return None
     return load_checkpoint(cfg.mapper.checkpoint or None)

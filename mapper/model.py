@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from mapper.grid import FREE, OCCUPIED, GridSpec, OccupancyGrid
+from rovergate.errors import CheckpointError
 
 IN_CHANNELS = 8
 #: A vertical run of at most this many predicted voxels is one surface crossing its column (see
@@ -158,12 +159,12 @@ def save_checkpoint(path: Path, model: OccupancyNet, window: WindowSpec, meta: d
 def load_checkpoint(path: Path | None = None) -> Checkpoint:
     """The checkpoint at ``path`` (default: the shipped one), ready for inference on the CPU.
 
-    A missing or unreadable file raises SystemExit with one line saying how to rebuild it.
+    A missing or unreadable file raises CheckpointError with one line saying how to rebuild it.
     """
     path = Path(path) if path is not None else shipped_checkpoint()
     if not path.is_file():
-        raise SystemExit(f"error: the occupancy model checkpoint {path} is missing; "
-                         f"{REBUILD_HINT}")
+        raise CheckpointError(f"the occupancy model checkpoint {path} is missing; "
+                              f"{REBUILD_HINT}")
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
         window = WindowSpec(**{k: tuple(v) if isinstance(v, list) else v
@@ -171,9 +172,9 @@ def load_checkpoint(path: Path | None = None) -> Checkpoint:
         model = OccupancyNet()
         model.load_state_dict(blob["state_dict"])
     except Exception as e:  # a truncated zip, a pickle error, missing or misshaped tensors
-        raise SystemExit(f"error: the occupancy model checkpoint {path} is corrupt "
-                         f"({type(e).__name__}: {str(e).splitlines()[0][:120] if str(e) else ''}"
-                         f"); {REBUILD_HINT}") from None
+        first_line = str(e).splitlines()[0][:120] if str(e) else ""
+        raise CheckpointError(f"the occupancy model checkpoint {path} is corrupt "
+                              f"({type(e).__name__}: {first_line}); {REBUILD_HINT}") from None
     model.eval()
     return Checkpoint(model, window, dict(blob.get("meta", {})), path)
 

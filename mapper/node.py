@@ -1,37 +1,35 @@
-"""The mapper as a process: depth in, S_t and the learned prediction out, every step."""
+"""The mapper as a node of the graph (``MODULES["mapper"]``): depth in, S_t and the learned
+prediction out, every step. Transport-free (see :mod:`rovergate.module`)."""
 
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 from mapper.mapper import Mapper
 from rovergate.config import MissionConfig
-from rovergate.logs import init_logging
-from rovergate.node import Input, ModuleNode
+from rovergate.graph import MODULES, Module
+from rovergate.module import Ask, StatelessLogic, StepOutput
 from rovergate.types import SensorFrame
 
 
-def main(cfg: MissionConfig, resume_step: int = 0) -> int:
-    log = init_logging("mapper")
-    mapper = Mapper.for_mission(cfg)
-    inputs = {"depth": Input("depth"), "info": Input("camera_info"), "pose": Input("pose"),
-              "base": Input("base_pose")}
-    node = ModuleNode("mapper", cfg.session, inputs=inputs, outputs=["surface", "predicted"],
-                      log=log)
+class MapperNode(StatelessLogic):
+    """:class:`rovergate.module.ModuleLogic` of the mapper."""
 
+    spec: ClassVar[Module] = MODULES["mapper"]
+
+    def __init__(self, cfg: MissionConfig, ask: Ask | None = None) -> None:
+        self.mapper = Mapper.for_mission(cfg)
+
+    @staticmethod
     def frame(step: int, inputs: dict[str, Any]) -> SensorFrame:
         return SensorFrame(step, inputs["depth"], inputs["info"], inputs["pose"], inputs["base"])
 
-    def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
+    def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()
-        out = mapper.step(frame(step, inputs))
-        seconds = time.perf_counter() - t0
-        node.publish("surface", (step, out.surface))
-        node.publish("predicted", (step, out.predicted))
-        return {"integrate": seconds}
+        out = self.mapper.step(self.frame(step, inputs))
+        return StepOutput([("surface", (step, out.surface)), ("predicted", (step, out.predicted))],
+                          {"integrate": time.perf_counter() - t0})
 
-    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps,
-                    resume_step=resume_step,
-                    restore=lambda step, inputs: mapper.integrate(frame(step, inputs)),
-                    restore_inputs=inputs)
+    def restore(self, step: int, inputs: dict[str, Any]) -> None:
+        self.mapper.integrate(self.frame(step, inputs))

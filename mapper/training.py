@@ -35,6 +35,7 @@ from mapper.model import (
 from mapper.walks import random_sensing, walk
 from rover_sim import suite
 from rover_sim.scene import Scene
+from rovergate.errors import ConfigError
 
 log = logging.getLogger("rovergate.train")
 
@@ -260,7 +261,7 @@ def main(cfg: TrainConfig) -> int:
     init_logging("train")
     check_disjoint()
     if cfg.device == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("error: --device cuda: no CUDA device here; use --device cpu")
+        raise ConfigError("--device cuda: no CUDA device here; use --device cpu")
     torch.set_num_threads(cfg.threads)
     torch.use_deterministic_algorithms(True, warn_only=cfg.device != "cpu")
     window = WindowSpec()

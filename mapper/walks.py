@@ -20,7 +20,7 @@ from rover_sim.scene import Scene
 from rover_sim.sensing import Sensing
 from rover_sim.world import PyBulletWorld
 from rovergate.config import RoverConfig, SensingConfig, SensorConfig
-from rovergate.platform import camera_from_base
+from rovergate.geometry import camera_from_base
 from rovergate.types import CameraIntrinsics
 
 

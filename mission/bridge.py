@@ -1,7 +1,7 @@
 """The mission manager's link to Earth: the only bridge between the rover's network and the
 ground's.
 
-The rover's processes form one Zenoh network (the hub's session and the modules); the ground
+The rover's processes form one Zenoh network (the mission's session and the modules); the ground
 station joins another, which only this bridge's session listens on (``--contact.ground-listen``).
 Nothing crosses except what the bridge passes, and it passes traffic only as the contact plan
 allows (:mod:`mission.contact`):
@@ -31,10 +31,12 @@ import zenoh
 
 from mission.contact import ContactConfig, ContactPlan
 from mission.downlink import DownlinkQueue
+from rovergate.config import SessionConfig
+from rovergate.errors import ConfigError
 from rovergate.keys import Keys
 from rovergate.messages import MessageError, encode, encode_item
 from rovergate.node import cdr_encoding, check_and_decode
-from rovergate.session import SessionConfig, open_session
+from rovergate.session import open_session
 from rovergate.types import (
     SURFACE_DTYPE,
     CommandAck,
@@ -72,10 +74,10 @@ class GroundBridge:
             self.session = open_session(SessionConfig(
                 mode="peer", listen=tuple(cfg.ground_listen), namespace=cfg.ground_namespace,
                 multicast_scouting=base.multicast_scouting))
-        except SystemExit:
+        except ConfigError:
             self.queue.close()
-            raise SystemExit(
-                f"error: the ground endpoint {', '.join(cfg.ground_listen)} could not be "
+            raise ConfigError(
+                f"the ground endpoint {', '.join(cfg.ground_listen)} could not be "
                 "opened (is another mission using it?); pass --contact.ground-listen with a "
                 "free port, e.g. tcp/127.0.0.1:7449, or --contact.no-enabled") from None
         self._pub = self.session.declare_publisher(

@@ -26,6 +26,8 @@ import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 
+from rovergate.errors import ConfigError
+
 #: Downlink priority of each kind of item (lower goes first).
 PRIORITY: dict[str, int] = {"event": 0, "command_ack": 0, "status": 1, "pose": 2, "map": 3}
 #: Kinds that may be dropped when the queue is over its bound.
@@ -78,8 +80,8 @@ class DownlinkQueue:
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(_SCHEMA)
         except sqlite3.DatabaseError as exc:
-            raise SystemExit(f"error: the downlink queue {self.path} is not a usable SQLite "
-                             f"file ({exc}); move it away to start with an empty queue") from None
+            raise ConfigError(f"the downlink queue {self.path} is not a usable SQLite "
+                              f"file ({exc}); move it away to start with an empty queue") from None
 
     def close(self) -> None:
         self._db.close()

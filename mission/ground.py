@@ -31,11 +31,13 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from rovergate.config import SessionConfig
 from rovergate.keys import Keys
 from rovergate.logs import init_logging
 from rovergate.messages import MessageError, decode_item, encode
-from rovergate.node import STOP, cdr_encoding, check_and_decode
-from rovergate.session import SessionConfig, open_session
+from rovergate.module import STOP
+from rovergate.node import cdr_encoding, check_and_decode
+from rovergate.session import open_session
 from rovergate.types import (
     CommandAck,
     DownlinkAck,

@@ -6,18 +6,31 @@ mission keeps those inputs here, as the raw bytes that travelled on the wire:
 every step of the topics a module rebuilds its state from (``KEEP_ALL``: a depth image of
 the default 160 x 120 camera is 77 kB, so 100 steps hold about 8 MB), and the last few steps
 of the bulky per-step products (``keep_last``), which a restarted module needs only for the
-step it resumes at.
+step it resumes at. Which topics go where is derived from the graph
+(:func:`rovergate.graph.journal_topics`).
+
+:class:`Journal` is plain data; :class:`JournalServer` answers a restarted module's queries
+for it over Zenoh.
 """
 
 from __future__ import annotations
 
+import logging
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-#: Topics journalled for every step: what the modules rebuild their state from.
-KEEP_ALL = frozenset({"status", "path", "depth", "camera_info", "pose", "base_pose"})
-#: Topics journalled for the last ``keep_last`` steps only: a step's live inputs.
-KEEP_LAST = frozenset({"surface", "predicted", "planner_map"})
+import zenoh
+
+from rovergate.graph import journal_topics
+from rovergate.keys import Keys
+from rovergate.node import cdr_encoding
+
+log = logging.getLogger("rovergate.mission")
+
+#: Topics journalled for every step (what the modules rebuild their state from, and the
+#: ticks), and for the last ``keep_last`` steps only (a step's other inputs).
+KEEP_ALL, KEEP_LAST = journal_topics()
 
 
 @dataclass(frozen=True)
@@ -29,7 +42,7 @@ class Entry:
 
 
 class Journal:
-    """Per-topic, per-step store of samples (plain data; the hub serves it over Zenoh)."""
+    """Per-topic, per-step store of samples (plain data; :class:`JournalServer` serves it)."""
 
     def __init__(self, keep_last: int = 3) -> None:
         self.keep_last = keep_last
@@ -57,3 +70,36 @@ class Journal:
     def nbytes(self) -> int:
         return sum(len(e.payload) for entries in self._entries.values()
                    for e in entries.values())
+
+
+class JournalServer:
+    """Answers ``<ns>/mission/journal/<key>?from=A;to=B`` with the journalled samples of steps
+    A..B, one reply per step (a restarted module's replay)."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, journal: Journal,
+                 lock: threading.Condition | threading.Lock) -> None:
+        self.journal = journal
+        self._lock = lock
+        self._queryables = [session.declare_queryable(keys.journal(t), self._on_query(keys, t))
+                            for t in journal.topics]
+
+    def _on_query(self, keys: Keys, topic: str):
+        key = keys.journal(topic)
+        encoding = cdr_encoding(topic)
+
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                first = int(query.parameters.get("from", "0"))
+                last = int(query.parameters.get("to", str(first)))
+            except ValueError:
+                log.warning("journal query %s has non-integer from/to; ignored", query.selector)
+                return
+            with self._lock:
+                entries = list(self.journal.range(topic, first, last))
+            for entry in entries:
+                query.reply(key, entry.payload, encoding=encoding)
+        return on_query
+
+    def close(self) -> None:
+        for q in self._queryables:
+            q.undeclare()

@@ -1,75 +1,143 @@
-"""The closed loop in one process, without Zenoh: the same logic, the same numbers."""
+"""The mission loop, written once: the clock, the step order, coverage, the gate audit and the
+record, driven over either transport (:mod:`mission.transport`).
+
+Step t: the mission ticks t; the simulator drives the path of step t-1 and renders step t; the
+mapper integrates it; the gate and the planner make the map and the path of step t. The
+mission receives what it records of step t-1 (path, execution report, prediction, planner
+map) and of step t (S_t, the base pose), and scores coverage. In the process set the link to
+the ground runs at every step boundary (:class:`mission.operations.Operations`).
+"""
 
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Callable
+from pathlib import Path
 
 from scipy.spatial import cKDTree
 
-from gate.conditions import get_condition
-from gate.gate import Gate, observed_radius_m
-from mapper.mapper import Mapper
 from mission.coverage import CoverageEvaluator
 from mission.metrics import suppression_audit
 from mission.record import MissionRecord
-from planner.planner import make_planner
-from rover_sim.sim import RoverSim
+from mission.transport import InProcessTransport, Transport
 from rovergate.config import MissionConfig
-from rovergate.types import Source, xyz
+from rovergate.geometry import voxel_first_points
+from rovergate.module import STOP
+from rovergate.types import MissionStatus, Source, xyz
+
+log = logging.getLogger("rovergate.mission")
+
+OnStep = Callable[[int, float], None]
 
 
-def run_in_process(cfg: MissionConfig, on_step=None) -> MissionRecord:
-    """Run ``cfg.steps`` planning steps; ``on_step(t, coverage)`` is called after each pose."""
-    record = MissionRecord(mode="in-process")
+def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None = None,
+                operations_factory: Callable[[], object] | None = None) -> MissionRecord:
+    """Run ``cfg.steps`` planning steps over ``transport``; ``on_step(t, coverage)`` is called
+    after each pose. ``operations_factory`` (process set only) builds the ground link's
+    :class:`mission.operations.Operations`. Raises :class:`rovergate.errors.MissionFailed` on
+    a fault."""
+    record = MissionRecord(mode=transport.mode)
     t_start = time.perf_counter()
-    sim = RoverSim(cfg)
+    state = "failed"
+    collisions = 0
+    ops = None
+    condition = cfg.condition
     try:
-        mapper = Mapper.for_mission(cfg)
-        reference = sim.truth_occupancy() if get_condition(cfg.condition).needs_truth else None
-        gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference,
-                    observed_radius_m=observed_radius_m(cfg))
-        planner = make_planner(cfg)
-        evaluator = CoverageEvaluator(sim.truth_surface(), cfg.eval.tau_frac * cfg.scene.d_scene_m)
-        # Evaluation only: which of the points the gate withheld were true false positives.
-        audit_ref = sim.truth_occupancy() if cfg.condition == "gated" else None
-        audit_tree = cKDTree(audit_ref) if audit_ref is not None else None
-        delta_m = cfg.gate.oracle_delta_frac * cfg.scene.d_scene_m
-
-        def timed(stage, fn, *args):
-            t0 = time.perf_counter()
-            out = fn(*args)
-            record.add_stage(stage, time.perf_counter() - t0)
-            return out
-
+        ops = operations_factory() if operations_factory else None
+        transport.start()
+        truth_surface = xyz(transport.ask("truth_surface"))
+        evaluator = CoverageEvaluator(truth_surface, cfg.tau_m)
+        # Evaluation only: the reference occupancy O* (as the simulator derives it), to audit
+        # what the gate withheld; built when the condition is (or becomes) gated.
+        audit_ref = audit_tree = None
+        if ops:
+            ops.bridge.event(0, "mission-started",
+                             f"{cfg.scene.name}/{cfg.start}, {cfg.platform}, {cfg.condition}, "
+                             f"{cfg.steps} steps")
         t_step = time.perf_counter()
-        path = None
         for t in range(cfg.steps + 1):
-            if path is not None:
-                record.executions.append(timed("execute", sim.execute, path))
+            if STOP.is_set():  # Ctrl-C or SIGTERM: stop at the step boundary
+                raise KeyboardInterrupt
+            if ops:
+                t_boundary = time.perf_counter()
+                ops.boundary(t)  # the link, and ground commands (they may pause or abort)
+                if ops.abort:
+                    state = "aborted"
+                    break
+                # A pause or a restart at the boundary is not the loop's step time.
+                t_step += time.perf_counter() - t_boundary
+                condition = ops.cfg.condition  # a ground command may have changed it
+            cov = record.coverage[-1] if record.coverage else 0.0
+            transport.tick(MissionStatus(t, cfg.steps, "running", condition, cov, collisions))
+            if t > 0:
+                record.paths.append(transport.receive("path", t - 1))
+                report = transport.receive("execution", t - 1)
+                collisions += int(report.collided)
+                record.executions.append(report)
+                predicted = transport.receive("predicted", t - 1)
+                planner_map = transport.receive("planner_map", t - 1)
+                kept = planner_map.points[planner_map.points["source"] == Source.PREDICTED]
+                record.predicted_points.append(len(predicted))
+                record.planner_predicted.append(len(kept))
+                # The map carries no count of what the gate withheld; under the gate, what it
+                # withheld is what it did not pass on.
+                record.suppressed.append(len(predicted) - len(kept) if condition == "gated"
+                                         else 0)
+                if condition == "gated":
+                    if audit_ref is None:
+                        audit_ref = voxel_first_points(truth_surface, cfg.mapper.voxel_m)
+                        audit_tree = cKDTree(audit_ref)
+                    record.suppressed_fp.append(suppression_audit(
+                        xyz(predicted), xyz(kept), audit_ref, cfg.oracle_delta_m,
+                        audit_tree)[1])
+            surface = transport.receive("surface", t)
+            base = transport.receive("base", t)
+            if t > 0:
                 record.step_wall_s.append(time.perf_counter() - t_step)
                 t_step = time.perf_counter()
-            frame = timed("render", sim.render, t)
-            mapped = timed("integrate", Mapper.step, mapper, frame)
-            record.base_xy.append((float(frame.T_map_base.position[0]),
-                                   float(frame.T_map_base.position[1])))
-            record.coverage.append(evaluator.update(xyz(mapped.surface)))
+            record.base_xy.append((float(base.position[0]), float(base.position[1])))
+            record.coverage.append(evaluator.update(xyz(surface)))
+            if ops:
+                ops.after_step(MissionStatus(t, cfg.steps, "running", condition,
+                                             record.coverage[-1], collisions), base, surface)
             if on_step:
                 on_step(t, record.coverage[-1])
             if t == cfg.steps:
-                record.surface_xyz = xyz(mapped.surface)
-                break
-            occupancy = timed("gate", gate.step, mapped, frame.T_map_camera, frame.intrinsics)
-            record.suppressed.append(occupancy.suppressed)
-            record.predicted_points.append(len(mapped.predicted))
-            kept = occupancy.points[occupancy.points["source"] == Source.PREDICTED]
-            record.planner_predicted.append(len(kept))
-            if audit_ref is not None:
-                record.suppressed_fp.append(
-                    suppression_audit(xyz(mapped.predicted), xyz(kept), audit_ref, delta_m,
-                                      audit_tree)[1])
-            path = timed("plan", planner.plan, t, occupancy, frame.T_map_base).path
-            record.paths.append(path)
+                record.surface_xyz = xyz(surface)
+        else:
+            state = "done"
     finally:
-        sim.close()
+        final = MissionStatus(len(record.coverage) - 1 if record.coverage else 0, cfg.steps,
+                              "done" if state == "done" else "aborted", condition,
+                              record.coverage[-1] if record.coverage else 0.0, collisions)
+        try:
+            transport.finish(final, failed=state == "failed")
+        finally:
+            if ops:
+                try:
+                    if state != "failed":
+                        record.link = ops.finish(final)
+                finally:
+                    ops.close()
+    record.state = state
+    for timing in sorted(transport.timings(), key=lambda t: (t.module, t.step)):
+        record.add_stage(timing.module, timing.compute_s)
+    record.restarts = transport.restarts()
+    record.dropped_messages = transport.dropped()
     record.wall_s = time.perf_counter() - t_start
     return record
+
+
+def run_in_process(cfg: MissionConfig, on_step: OnStep | None = None) -> MissionRecord:
+    """The mission with every module in this process, without Zenoh (the study's runs)."""
+    return run_mission(cfg, InProcessTransport(cfg), on_step)
+
+
+def run_processes(cfg: MissionConfig, on_step: OnStep | None = None) -> MissionRecord:
+    """The mission as a process set over Zenoh, with the ground link when it is enabled."""
+    from mission.operations import Operations
+    from mission.process_set import ProcessSetTransport
+    transport = ProcessSetTransport(cfg, Path(cfg.out))
+    factory = (lambda: Operations(transport)) if cfg.contact.enabled else None
+    return run_mission(cfg, transport, on_step, factory)

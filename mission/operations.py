@@ -1,6 +1,7 @@
 """Mission operations at the step boundary: the link to the ground, and ground commands.
 
-:class:`Operations` sits in the process set's mission loop (:func:`mission.hub.run_processes`).
+:class:`Operations` sits in the process set's mission loop (:func:`mission.loop.run_mission`),
+and acts on the mission through :class:`MissionControl` (the process set implements it).
 At the top of every step it advances the link (:class:`mission.bridge.GroundBridge`) and
 executes the commands that have reached the rover; after every step it queues that step's
 telemetry. While paused, it keeps the link's clock running in idle steps (the rover holds
@@ -18,12 +19,16 @@ import dataclasses
 import json
 import logging
 import time
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
 from mission.bridge import Delivered, GroundBridge
+from mission.supervisor import RestartEvent
+from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, from_dict, to_dict
+from rovergate.errors import UnknownNameError
 from rovergate.types import CommandAck, MissionStatus, Pose
 
 log = logging.getLogger("rovergate.operations")
@@ -61,18 +66,47 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
     return from_dict(MissionConfig, data), modules
 
 
+class MissionControl(Protocol):
+    """What ground commands act through: the process set's side of operations."""
+
+    @property
+    def cfg(self) -> MissionConfig:
+        """The configuration as it stands."""
+        ...
+
+    out: Path
+    """The mission's output directory (the downlink queue lives there)."""
+
+    @property
+    def restart_events(self) -> list[RestartEvent]:
+        """Modules that died and were restarted, in order."""
+        ...
+
+    def publish_status(self, status: MissionStatus) -> None:
+        """Publish a status (``paused`` keep-alives while the ground holds the rover)."""
+        ...
+
+    def check_health(self) -> bool:
+        """Restart every module that died; True when one was."""
+        ...
+
+    def reconfigure(self, cfg: MissionConfig, modules: list[str], step: int) -> None:
+        """Restart ``modules`` with ``cfg`` at the boundary before ``step``."""
+        ...
+
+
 class Operations:
     """The link, pause and abort, and in-flight reconfiguration of one process-set mission."""
 
     @property
     def cfg(self) -> MissionConfig:
-        """The mission's configuration as it stands (the hub's: commands change it)."""
-        return self.hub.cfg
+        """The mission's configuration as it stands (commands change it)."""
+        return self.control.cfg
 
-    def __init__(self, hub) -> None:
-        self.hub = hub
-        cfg = hub.cfg
-        self.bridge = GroundBridge(cfg.contact, hub.out, cfg.session)
+    def __init__(self, control: MissionControl) -> None:
+        self.control = control
+        cfg = control.cfg
+        self.bridge = GroundBridge(cfg.contact, control.out, cfg.session)
         c, plan = cfg.contact, self.bridge.plan
         windows = plan.windows_between(0, cfg.steps)
         log.info("link to the ground on %s (`rovergate ground --connect ...` to follow): "
@@ -96,11 +130,11 @@ class Operations:
         while self.paused and not self.abort:
             if time.monotonic() - last_keepalive > 1.0:
                 # Modules stop when no input comes for long; "paused" tells them to wait on.
-                self.hub.publish_status(MissionStatus(step, self.cfg.steps, "paused",
+                self.control.publish_status(MissionStatus(step, self.cfg.steps, "paused",
                                                       self.cfg.condition, 0.0, 0))
                 last_keepalive = time.monotonic()
             time.sleep(self.cfg.contact.idle_step_wall_s)
-            self.hub.check_health()
+            self.control.check_health()
             self._handle(step, self.bridge.tick())
 
     def _handle(self, step: int, delivered: list[Delivered]) -> None:
@@ -140,11 +174,10 @@ class Operations:
         if verb == "set":
             cfg, modules = apply_settings(self.cfg, args)
         elif verb == "condition":
-            from gate.conditions import get_condition
             try:
                 get_condition(args[0])
-            except SystemExit as exc:
-                raise CommandError(str(exc).removeprefix("error: ")) from None
+            except UnknownNameError as exc:
+                raise CommandError(str(exc)) from None
             cfg, modules = dataclasses.replace(self.cfg, condition=args[0]), {"mapper", "gate"}
         elif verb == "planner":
             if args[0] == "cmd":
@@ -161,7 +194,7 @@ class Operations:
         else:
             raise CommandError(f"unknown verb {verb!r}")
         t0 = time.monotonic()
-        self.hub.reconfigure(cfg, sorted(modules), step)
+        self.control.reconfigure(cfg, sorted(modules), step)
         seconds = time.monotonic() - t0
         self.reconfigurations.append({"step": step, "verb": verb, "args": args,
                                       "modules": sorted(modules), "seconds": seconds})
@@ -171,7 +204,7 @@ class Operations:
         return f"{', '.join(sorted(modules))} restarted with {verb} {' '.join(args)}"
 
     def _report_restarts(self) -> None:
-        events = self.hub.events
+        events = self.control.restart_events
         for e in events[self.events_sent:]:
             self.bridge.event(e.step, "module-restarted",
                               f"{e.module} {e.reason}; restarted, resuming at step {e.step}")

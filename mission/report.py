@@ -25,7 +25,7 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
     metrics.update(scene=cfg.scene.name, platform=cfg.platform, start=cfg.start, seed=cfg.seed,
                    condition=cfg.condition, planner=planner_name(cfg),
                    d_scene_m=cfg.scene.d_scene_m,
-                   tau_m=cfg.eval.tau_frac * cfg.scene.d_scene_m)
+                   tau_m=cfg.tau_m)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     with open(out / "coverage.csv", "w", newline="") as f:
         w = csv.writer(f)

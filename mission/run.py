@@ -9,38 +9,60 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from gate.conditions import get_condition
 from mapper.mapper import mission_checkpoint
-from mission.hub import MissionFailed, run_processes
-from mission.loop import run_in_process
+from mission.loop import run_in_process, run_processes
 from mission.report import write_report
-from rover_sim.catalog import resolve_scene
+from planner.planner import PLANNERS, planner_name
+from rover_sim.catalog import load_scene, resolve_scene
+from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, save_config, to_dict
+from rovergate.errors import ConfigError, MissionFailed, UnknownNameError
+from rovergate.geometry import check_platform
 from rovergate.logs import init_logging
-from rovergate.platform import check_platform
 
 
 def check_runnable(cfg: MissionConfig) -> None:
-    """Refuse, before anything starts, a mission that cannot run as configured."""
+    """Refuse, before anything starts, a mission that cannot run as configured: every name
+    resolves, every count and limit is in range, the checkpoint loads, the contact plan is
+    valid. Raises :class:`ConfigError` (or :class:`UnknownNameError`) with one line."""
     check_platform(cfg.platform)
     get_condition(cfg.condition)
-    mission_checkpoint(cfg)  # a missing or corrupt checkpoint stops the mission here
-    if cfg.steps < 1:
-        raise SystemExit(f"error: --steps must be at least 1, got {cfg.steps}")
+    resolve_scene(cfg.scene)
+    scene = load_scene(cfg.scene)
+    if cfg.start not in scene.starts:
+        raise UnknownNameError(f"scene {scene.name!r} has no start {cfg.start!r}; choose one "
+                               f"of: {', '.join(scene.starts)} (--start)")
+    if not cfg.planner.command and planner_name(cfg) not in PLANNERS:
+        raise UnknownNameError(f"unknown planner {cfg.planner.name!r}; choose one of: auto, "
+                               f"{', '.join(PLANNERS)} (--planner.name)")
+    mission_checkpoint(cfg)  # a bad --mapper.prediction or checkpoint stops the mission here
+    for flag, value, least in (("--steps", cfg.steps, 1), ("--max-restarts", cfg.max_restarts, 0),
+                               ("--gate.k", cfg.gate.k, 1),
+                               ("--sensor.width-px", cfg.sensor.width_px, 8),
+                               ("--sensor.height-px", cfg.sensor.height_px, 8),
+                               ("--planner.n-candidates", cfg.planner.n_candidates, 1)):
+        if value < least:
+            raise ConfigError(f"{flag} must be at least {least}, got {value}")
+    for flag, value in (("--ready-timeout-s", cfg.ready_timeout_s),
+                        ("--step-timeout-s", cfg.step_timeout_s),
+                        ("--planner.max-step-m", cfg.planner.max_step_m),
+                        ("--mapper.voxel-m", cfg.mapper.voxel_m)):
+        if not value > 0:
+            raise ConfigError(f"{flag} must be positive, got {value}")
     if cfg.in_process and cfg.planner.command:
-        raise SystemExit("error: --planner.command runs a planner program, which needs the "
-                         "process set; leave out --in-process")
+        raise ConfigError("--planner.command runs a planner program, which needs the "
+                          "process set; leave out --in-process")
     if cfg.contact.enabled and not cfg.in_process:
         from mission.contact import ContactPlan, ContactPlanError
         try:
             ContactPlan(cfg.contact)
         except ContactPlanError as exc:
-            raise SystemExit(f"error: {exc}") from None
+            raise ConfigError(str(exc)) from None
 
 
 def main(cfg: MissionConfig) -> int:
+    """Run one mission as configured and write its report under ``cfg.out``."""
     log = init_logging("mission")
-    resolve_scene(cfg.scene)
     check_runnable(cfg)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -37,9 +37,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from gate.conditions import get_condition
 from rover_sim.catalog import START_NAMES, SUITE, load_scene, resolve_scene
+from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, from_dict, to_dict
+from rovergate.errors import ConfigError
 from rovergate.logs import init_logging
 
 log = logging.getLogger("rovergate.study")
@@ -98,23 +99,23 @@ class RunSpec:
 def check_study(cfg: StudyConfig) -> StudyConfig:
     """Validate the settings; one line for each kind of mistake. Returns them resolved."""
     if not cfg.scenes or not cfg.starts or not cfg.conditions:
-        raise SystemExit("error: --scenes, --starts and --conditions each need at least one "
-                         "value")
+        raise ConfigError("--scenes, --starts and --conditions each need at least one "
+                          "value")
     for c in cfg.conditions:
         get_condition(c)
     conditions = tuple(dict.fromkeys(("learned", *cfg.conditions)))  # the baseline first
     conditions = tuple(c for c in PAPER_ORDER if c in conditions) + tuple(
         c for c in conditions if c not in PAPER_ORDER)
     if cfg.reps < 1 or cfg.filter_reps < 0 or cfg.steps < 1:
-        raise SystemExit(f"error: --reps and --steps must be at least 1 and --filter-reps at "
-                         f"least 0; got {cfg.reps}, {cfg.steps}, {cfg.filter_reps}")
+        raise ConfigError(f"--reps and --steps must be at least 1 and --filter-reps at "
+                          f"least 0; got {cfg.reps}, {cfg.steps}, {cfg.filter_reps}")
     for name in cfg.scenes:
         scene = load_scene(replace(cfg.mission.scene, name=name, d_scene_m=0.0,
                                    bounds_m=(0,) * 6))
         for s in cfg.starts:
             if s not in scene.starts:
-                raise SystemExit(f"error: scene {name!r} has no start {s!r}; its starts are "
-                                 f"{', '.join(scene.starts)}")
+                raise ConfigError(f"scene {name!r} has no start {s!r}; its starts are "
+                                  f"{', '.join(scene.starts)}")
     workers = cfg.workers or os.cpu_count() or 1
     return replace(cfg, conditions=conditions, workers=workers)
 
@@ -201,11 +202,11 @@ def main(cfg: StudyConfig) -> int:
         try:
             saved = json.loads(settings_path.read_text())
         except ValueError:
-            raise SystemExit(f"error: {settings_path} is not valid JSON; delete it, or give "
-                             "--out a new directory") from None
+            raise ConfigError(f"{settings_path} is not valid JSON; delete it, or give "
+                              "--out a new directory") from None
         if saved.get("settings") != settings:
-            raise SystemExit(f"error: {out} holds a study with other settings; give --out a "
-                             f"new directory, or delete {out} to start this one there")
+            raise ConfigError(f"{out} holds a study with other settings; give --out a "
+                              f"new directory, or delete {out} to start this one there")
         sessions = saved.get("sessions", [])
     else:
         sessions = []

@@ -1,33 +1,34 @@
-"""The planner as a process: planner-facing occupancy and rover pose in, a path out."""
+"""The planner as a node of the graph (``MODULES["planner"]``): planner-facing occupancy and
+rover pose in, a path out. Transport-free (see :mod:`rovergate.module`)."""
 
 from __future__ import annotations
 
+import logging
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 from planner.planner import make_planner
 from rovergate.config import MissionConfig
-from rovergate.logs import init_logging
-from rovergate.node import Input, ModuleNode
+from rovergate.graph import MODULES, Module
+from rovergate.module import Ask, StatelessLogic, StepOutput
+
+log = logging.getLogger("rovergate.planner")
 
 
-def main(cfg: MissionConfig, resume_step: int = 0) -> int:
-    log = init_logging("planner")
-    planner = make_planner(cfg)
-    node = ModuleNode("planner", cfg.session,
-                      inputs={"map": Input("planner_map"), "base": Input("base_pose")},
-                      outputs=["path"], log=log)
+class PlannerNode(StatelessLogic):
+    """:class:`rovergate.module.ModuleLogic` of the planner. It keeps no state between steps
+    (its random draws are seeded by seed and step): a restarted one needs only the inputs of
+    the step it resumes at."""
 
-    def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
+    spec: ClassVar[Module] = MODULES["planner"]
+
+    def __init__(self, cfg: MissionConfig, ask: Ask | None = None) -> None:
+        self.planner = make_planner(cfg)
+
+    def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()
-        result = planner.plan(step, inputs["map"], inputs["base"])
+        result = self.planner.plan(step, inputs["map"], inputs["base"])
         seconds = time.perf_counter() - t0
         log.debug("step %d: %s, gain %d after %d attempts", step, result.reason, result.gain,
                   result.attempts)
-        node.publish("path", result.path)
-        return {"plan": seconds}
-
-    # A planner keeps no state between steps (its random draws are seeded by seed and step):
-    # a restarted one needs only the inputs of the step it resumes at.
-    return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps - 1,
-                    resume_step=resume_step)
+        return StepOutput([("path", result.path)], {"plan": seconds})

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gate.gate import observed_radius_m
 from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
+from rovergate.errors import UnknownNameError
 from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
 
@@ -55,7 +55,7 @@ class Planner(abc.ABC):
         rng = np.random.default_rng([cfg.seed, step])
         k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
                                       sensor.vfov_deg).scaled(pc.gain_resolution)
-        novel = novel_mask(occupancy, pc.observed_min_views, observed_radius_m(cfg))
+        novel = novel_mask(occupancy, pc.observed_min_views, cfg.observed_radius_m)
         field = GainField(points, novel, pc.gain_voxel_m, k, sensor.min_range_m,
                           sensor.max_range_m, pc.zbuffer_tolerance_m)
         return model, rng, field
@@ -221,6 +221,6 @@ def make_planner(cfg: MissionConfig) -> Planner:
     """The configured planner; an unknown name gives the list of valid ones."""
     name = planner_name(cfg)
     if name not in PLANNERS:
-        raise SystemExit(f"error: unknown planner {cfg.planner.name!r}; choose one of: "
-                         f"auto, {', '.join(PLANNERS)}")
+        raise UnknownNameError(f"unknown planner {cfg.planner.name!r}; choose one of: "
+                               f"auto, {', '.join(PLANNERS)}")
     return PLANNERS[name](cfg)

@@ -16,7 +16,7 @@ import numpy as np
 from planner.collision import FlyerCollisionModel, OccupancyCollisionModel
 from planner.motion import plan_r3, plan_se2
 from rovergate.config import MissionConfig, RoverConfig
-from rovergate.platform import camera_from_base
+from rovergate.geometry import camera_from_base
 from rovergate.types import Pose
 
 State = tuple[float, ...]

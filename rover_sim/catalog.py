@@ -22,6 +22,7 @@ from scipy.ndimage import label
 from rover_sim import suite
 from rover_sim.scene import Scene
 from rovergate.config import FlyerConfig, RoverConfig, SceneConfig
+from rovergate.errors import ConfigError, UnknownNameError
 
 START_NAMES = ("a", "b", "c", "d", "e")
 START_GRID_M = 1.0
@@ -92,8 +93,8 @@ def _load(name: str, up_axis: str, scale: float, region_m: float,
                                 bounds_m=bounds)
         scene.starts = choose_starts(scene)
         return scene
-    raise SystemExit(f"error: unknown scene {name!r}; choose one of: {', '.join(SCENES)}, or "
-                     "pass the path of a mesh file (OBJ, PLY, STL, GLB)")
+    raise UnknownNameError(f"unknown scene {name!r}; choose one of: {', '.join(SCENES)}, or "
+                           "pass the path of a mesh file (OBJ, PLY, STL, GLB)")
 
 
 def load_scene(spec: str | SceneConfig) -> Scene:
@@ -154,10 +155,10 @@ def choose_starts(scene: Scene, n: int = 5) -> dict[str, tuple[float, float, flo
     xs, ys, ok = start_candidates(scene)
     labels, count = label(ok, structure=np.ones((3, 3)))
     if count == 0:
-        raise SystemExit(f"error: scene {scene.name!r} has no place where the rover fits on "
-                         "traversable ground inside its box of interest; pass a larger "
-                         "--scene.bounds-m or check the mesh's --scene.up-axis and "
-                         "--scene.scale")
+        raise ConfigError(f"scene {scene.name!r} has no place where the rover fits on "
+                          "traversable ground inside its box of interest; pass a larger "
+                          "--scene.bounds-m or check the mesh's --scene.up-axis and "
+                          "--scene.scale")
     sizes = np.bincount(labels.ravel())[1:]
     rows, cols = np.nonzero(labels == 1 + int(np.argmax(sizes)))
     pts = np.c_[xs[cols], ys[rows]]

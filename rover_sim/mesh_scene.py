@@ -21,6 +21,7 @@ import trimesh
 from scipy.ndimage import distance_transform_edt
 
 from rover_sim.scene import Scene, heightfield_mesh
+from rovergate.errors import ConfigError
 
 GROUND_CELL_M = 0.25
 GROUND_TOL_M = 0.08
@@ -30,8 +31,8 @@ UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 
 def _up_transform(up_axis: str) -> np.ndarray:
     if up_axis not in UP_AXES:
-        raise SystemExit(
-            f"error: --scene.up-axis {up_axis!r} is not an axis; use one of {', '.join(UP_AXES)}"
+        raise ConfigError(
+            f"--scene.up-axis {up_axis!r} is not an axis; use one of {', '.join(UP_AXES)}"
         )
     sign = -1.0 if up_axis.startswith("-") else 1.0
     axis = {"x": [1, 0, 0], "y": [0, 1, 0], "z": [0, 0, 1]}[up_axis[-1]]
@@ -42,23 +43,23 @@ def read_mesh(path: Path, up_axis: str, scale: float) -> trimesh.Trimesh:
     """The file's triangles, z up, in metres; a bad file gives one line saying why."""
     path = Path(path)
     if not path.is_file():
-        raise SystemExit(
-            f"error: scene file {path} does not exist; pass a mesh file (OBJ, "
+        raise ConfigError(
+            f"scene file {path} does not exist; pass a mesh file (OBJ, "
             "PLY, STL, GLB) or a scene name from `rovergate scenes`"
         )
     up = _up_transform(up_axis)
     if not scale > 0:
-        raise SystemExit(f"error: --scene.scale {scale} must be positive (metres per unit)")
+        raise ConfigError(f"--scene.scale {scale} must be positive (metres per unit)")
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many kinds for unreadable files
-        raise SystemExit(
-            f"error: cannot read scene file {path} as a mesh ({exc}); export it "
+        raise ConfigError(
+            f"cannot read scene file {path} as a mesh ({exc}); export it "
             "as OBJ, PLY, STL or GLB"
         ) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise SystemExit(
-            f"error: scene file {path} holds no triangles; export the surface as a triangle mesh"
+        raise ConfigError(
+            f"scene file {path} holds no triangles; export the surface as a triangle mesh"
         )
     mesh = trimesh.Trimesh(
         np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), process=False
@@ -117,8 +118,8 @@ def load_mesh_scene(
         centre = (lo[:2] + hi[:2]) / 2
         half = np.minimum((hi[:2] - lo[:2]) / 2, region_m / 2)
         if np.any(half < 2 * 2.0 + 1.0):
-            raise SystemExit(
-                f"error: scene file {path} is only {hi[0] - lo[0]:.2f} x "
+            raise ConfigError(
+                f"scene file {path} is only {hi[0] - lo[0]:.2f} x "
                 f"{hi[1] - lo[1]:.2f} units across: too small for a rover; "
                 "pass --scene.scale (metres per unit) or --scene.up-axis"
             )
@@ -141,8 +142,8 @@ def load_mesh_scene(
         origin = np.abs(normal) * x
         mesh = trimesh.intersections.slice_mesh_plane(mesh, np.array(normal, float), origin)
     if len(mesh.faces) == 0:
-        raise SystemExit(
-            f"error: scene file {path} has no triangles inside the box of "
+        raise ConfigError(
+            f"scene file {path} has no triangles inside the box of "
             "interest; check --scene.bounds-m"
         )
     xs = np.arange(region[0] - CROP_MARGIN_M, region[2] + CROP_MARGIN_M + 1e-9, GROUND_CELL_M)

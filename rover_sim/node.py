@@ -1,47 +1,51 @@
-"""The simulator as a process: renders each tick, executes each path, serves ground truth."""
+"""The simulator as a node of the graph (``MODULES["sim"]``): drives the path of step t-1,
+renders step t, serves ground truth on request. Transport-free: a process runs it under
+:class:`rovergate.node.ModuleNode`, the in-process loop calls it directly."""
 
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
-from rovergate.logs import init_logging
-from rovergate.node import Input, ModuleNode
+from rovergate.graph import MODULES, Module
+from rovergate.module import Ask, StepOutput
 from rovergate.types import XYZ_DTYPE, make_cloud
 
 
-def main(cfg: MissionConfig, resume_step: int = 0) -> int:
-    log = init_logging("sim")
-    sim = RoverSim(cfg)
-    node = ModuleNode("sim", cfg.session,
-                      inputs={"tick": Input("status"), "path": Input("path", lag=1)},
-                      outputs=["depth", "camera_info", "pose", "base_pose", "execution"], log=log)
-    # Ground truth is served on request only; under obs, learned and gated nobody asks.
-    node.serve("truth_surface", lambda: (0, make_cloud(sim.truth_surface(), XYZ_DTYPE)))
-    node.serve("truth_occupancy", lambda: (0, make_cloud(sim.truth_occupancy(), XYZ_DTYPE)))
+class SimNode:
+    """:class:`rovergate.module.ModuleLogic` of the simulator."""
 
-    def handle(step: int, inputs: dict[str, Any]) -> dict[str, float]:
-        stages = {}
+    spec: ClassVar[Module] = MODULES["sim"]
+
+    def __init__(self, cfg: MissionConfig, ask: Ask | None = None) -> None:
+        self.sim = RoverSim(cfg)
+
+    def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
+        out = StepOutput()
         if step > 0:
             t0 = time.perf_counter()
-            report = sim.execute(inputs["path"])
-            stages["execute"] = time.perf_counter() - t0
-            node.publish("execution", report)
+            out.messages.append(("execution", self.sim.execute(inputs["path"])))
+            out.stages["execute"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        frame = sim.render(step)
-        stages["render"] = time.perf_counter() - t0
-        node.publish("depth", (step, frame.depth_m))
-        node.publish("camera_info", (step, frame.intrinsics))
-        node.publish("pose", (step, frame.T_map_camera))
-        node.publish("base_pose", (step, frame.T_map_base))
-        return stages
+        frame = self.sim.render(step)
+        out.stages["render"] = time.perf_counter() - t0
+        out.messages += [("depth", (step, frame.depth_m)),
+                         ("camera_info", (step, frame.intrinsics)),
+                         ("pose", (step, frame.T_map_camera)),
+                         ("base_pose", (step, frame.T_map_base))]
+        return out
 
-    try:
-        return node.run(handle, cfg.ready_timeout_s + cfg.step_timeout_s, last_step=cfg.steps,
-                        resume_step=resume_step,
-                        restore=lambda step, inputs: sim.restore(step, inputs["path"]),
-                        restore_inputs={"path": Input("path", lag=1)})
-    finally:
-        sim.close()
+    def restore(self, step: int, inputs: dict[str, Any]) -> None:
+        self.sim.restore(step, inputs["path"])
+
+    def serve(self, topic: str) -> Any:
+        # Ground truth is served on request only; under obs, learned and gated only the
+        # mission's coverage evaluator asks.
+        points = {"truth_surface": self.sim.truth_surface,
+                  "truth_occupancy": self.sim.truth_occupancy}[topic]()
+        return 0, make_cloud(points, XYZ_DTYPE)
+
+    def close(self) -> None:
+        self.sim.close()

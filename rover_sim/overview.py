@@ -7,19 +7,17 @@ rendered by pybullet.
 
 from __future__ import annotations
 
-import argparse
-import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pybullet as pb
+import tyro
 
 from rover_sim.catalog import SCENES, load_scene
 from rover_sim.scene import Scene
 from rover_sim.world import add_scene
 from rovergate.config import SceneConfig
-
-USAGE = "rovergate scenes [NAME_OR_MESH ...] [--up-axis A] [--scale S] [--render DIR]"
 
 
 def describe(scene: Scene, kind: str) -> list[str]:
@@ -77,16 +75,21 @@ def render_overview(scene: Scene, path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rovergate scenes", usage=USAGE,
-                                     description="List the scenes (or the named ones and mesh "
-                                                 "files), with sizes and starts.")
-    parser.add_argument("names", nargs="*", help="scene names or mesh files (default: all)")
-    parser.add_argument("--up-axis", default="z", help="mesh files: their up axis")
-    parser.add_argument("--scale", type=float, default=1.0, help="mesh files: metres per unit")
-    parser.add_argument("--render", type=Path, metavar="DIR",
-                        help="write DIR/<scene>.png for each scene")
-    args = parser.parse_args(argv)
+@dataclass
+class ScenesConfig:
+    """List the scenes (or the named ones and mesh files), with sizes and starts."""
+
+    names: tyro.conf.Positional[tuple[str, ...]] = ()
+    """Scene names or mesh files (default: every registered scene)."""
+    up_axis: str = "z"
+    """Mesh files: their up axis."""
+    scale: float = 1.0
+    """Mesh files: metres per file unit."""
+    render: Path | None = None
+    """Write DIR/<scene>.png for each scene."""
+
+
+def main(args: ScenesConfig) -> int:
     names = args.names or list(SCENES)
     if args.render:
         args.render.mkdir(parents=True, exist_ok=True)
@@ -101,5 +104,3 @@ def main(argv: list[str]) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

@@ -17,7 +17,7 @@ import numpy as np
 
 from rover_sim.scene import Scene
 from rovergate.config import RoverConfig
-from rovergate.platform import rot_x, rot_y, rot_z
+from rovergate.geometry import rot_x, rot_y, rot_z
 
 
 @dataclass

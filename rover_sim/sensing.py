@@ -20,7 +20,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from rovergate.config import SensingConfig
-from rovergate.platform import rot_z
+from rovergate.geometry import rot_z
 from rovergate.types import CameraIntrinsics
 
 _DEPTH_STREAM, _DRIFT_STREAM = 0xD0, 0xD1

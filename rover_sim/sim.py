@@ -21,7 +21,8 @@ from rover_sim.scene import Scene
 from rover_sim.sensing import Sensing
 from rover_sim.world import PyBulletWorld
 from rovergate.config import MissionConfig
-from rovergate.platform import camera_from_base, check_platform
+from rovergate.errors import UnknownNameError
+from rovergate.geometry import camera_from_base, check_platform, voxel_first_points
 from rovergate.types import ExecutionReport, PlanPath, Pose, SensorFrame
 
 log = logging.getLogger("rovergate.sim")
@@ -35,8 +36,8 @@ class RoverSim:
         check_platform(cfg.platform)
         self.scene = scene or load_scene(cfg.scene)
         if cfg.start not in self.scene.starts:
-            raise SystemExit(f"error: scene {self.scene.name!r} has no start {cfg.start!r}; "
-                             f"choose one of: {', '.join(self.scene.starts)}")
+            raise UnknownNameError(f"scene {self.scene.name!r} has no start {cfg.start!r}; "
+                                   f"choose one of: {', '.join(self.scene.starts)}")
         x, y, yaw = self.scene.starts[cfg.start]
         self.flying = cfg.platform == "flyer"
         if self.flying:
@@ -119,7 +120,6 @@ class RoverSim:
 
     def truth_occupancy(self) -> np.ndarray:
         """(N, 3) float32 reference occupied points O*: the truth samples, one per mapper voxel."""
-        from mapper.integrate import voxel_first_points
         return voxel_first_points(self.truth_surface(), self.cfg.mapper.voxel_m)
 
     def close(self) -> None:

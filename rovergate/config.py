@@ -12,11 +12,30 @@ import json
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import tyro
 
-from rovergate.session import SessionConfig
+from rovergate.errors import ConfigError
+
+
+@dataclass
+class SessionConfig:
+    """How a process joins the Zenoh network."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    """Zenoh mode of this process."""
+    connect: tuple[str, ...] = ()
+    """Endpoints to connect to, e.g. tcp/127.0.0.1:7447."""
+    listen: tuple[str, ...] = ()
+    """Endpoints to listen on, e.g. tcp/0.0.0.0:7447 to let other machines connect."""
+    namespace: str = "rover"
+    """Prefix of every key expression, so that several rovers can share one network."""
+    multicast_scouting: bool = False
+    """Discover peers by UDP multicast. Off by default: endpoints are explicit."""
+    wait_for_peers: int = 0
+    """Before declaring itself ready, wait until this many peers are linked (`rovergate run`
+    sets it so that the first messages of a mission reach every module)."""
 
 
 @dataclass
@@ -294,6 +313,29 @@ class MissionConfig:
     contact: ContactConfig = field(default_factory=ContactConfig)
     session: tyro.conf.OmitArgPrefixes[SessionConfig] = field(default_factory=SessionConfig)
 
+    # --- radii derived from the settings: one definition for every module ------------------
+
+    @property
+    def tau_m(self) -> float:
+        """Coverage tolerance: a true sample is covered with an observed point this near."""
+        return self.eval.tau_frac * self.scene.d_scene_m
+
+    @property
+    def oracle_delta_m(self) -> float:
+        """Oracle tagging tolerance delta (false positives and negatives, the gate audit)."""
+        return self.gate.oracle_delta_frac * self.scene.d_scene_m
+
+    @property
+    def epsilon_m(self) -> float:
+        """The gate's support radius epsilon (equation 4)."""
+        return self.gate.epsilon_frac * self.scene.d_scene_m
+
+    @property
+    def observed_radius_m(self) -> float:
+        """How near a well-observed S_t point must be for a map point to count as observed:
+        1.5 mapper voxels (the planner's gain, and the views a truth point borrows)."""
+        return 1.5 * self.mapper.voxel_m
+
 
 def to_dict(cfg: Any) -> dict[str, Any]:
     """A JSON-ready dict of a config dataclass."""
@@ -340,8 +382,8 @@ def load_config(path: Path) -> MissionConfig:
     try:
         return from_dict(MissionConfig, json.loads(Path(path).read_text()))
     except FileNotFoundError:
-        raise SystemExit(f"error: config file {path} does not exist; pass the config.json that "
-                         "`rovergate run` wrote, or leave --config out") from None
+        raise ConfigError(f"config file {path} does not exist; pass the config.json that "
+                          "`rovergate run` wrote, or leave --config out") from None
     except (ValueError, TypeError) as exc:
-        raise SystemExit(f"error: config file {path} is not a valid rovergate config ({exc}); "
-                         "write it with `rovergate run` or fix the named key") from None
+        raise ConfigError(f"config file {path} is not a valid rovergate config ({exc}); "
+                          "write it with `rovergate run` or fix the named key") from None

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from rovergate.keys import TOPICS
+from rovergate.graph import TOPICS
 from rovergate.types import (
     PLANNER_DTYPE,
     PREDICTED_DTYPE,
@@ -359,6 +359,19 @@ def decode_item(kind: str, msgtype: str, payload: bytes) -> Any:
         raise
     except Exception as exc:
         raise MessageError(f"not a valid CDR {msgtype}: {exc}") from None
+
+
+#: Topics whose value is written ``(step, value)``; the others carry their step themselves.
+_STEP_PAIRS = frozenset({"depth", "camera_info", "pose", "base_pose", "surface", "predicted",
+                         "truth_surface", "truth_occupancy"})
+
+
+def stamped(topic: str, value: Any) -> tuple[int, Any]:
+    """``(step, value as a reader receives it)`` of a value written for ``topic``: what
+    :func:`decode` gives back from :func:`encode`'s bytes, without the bytes."""
+    if topic in _STEP_PAIRS:
+        return value
+    return value.step, value
 
 
 def encode(topic: str, value: Any) -> bytes:

@@ -1,9 +1,11 @@
-"""The node runtime: a thin wrapper that puts a module's plain logic on the Zenoh network.
+"""The node runtime: a thin wrapper that puts a module's logic on the Zenoh network.
 
-A :class:`ModuleNode` owns the session, the publishers and subscriptions, the liveliness token
-that says the module is ready, and the lockstep: the handler for step t runs once every input
-for step t has arrived (an input with ``lag=1`` is the message of step t-1, absent at t=0).
-Module logic never imports Zenoh; only this module and the mission's hub do.
+A :class:`ModuleNode` takes a module's declaration from :mod:`rovergate.graph` and its logic
+(:class:`rovergate.module.ModuleLogic`), and owns the session, the publishers and
+subscriptions, the queryables it serves, the liveliness token that says the module is ready,
+and the lockstep: the logic handles step t once every input for step t has arrived (an input
+with ``lag=1`` is the message of step t-1, absent at t=0). Module logic never imports Zenoh;
+only this module, :mod:`rovergate.session` and the mission's Zenoh transport do.
 
 A message that does not decode, or has the wrong encoding, type or shape, is logged with its
 key and the reason, counted, and dropped; the process runs on.
@@ -18,20 +20,20 @@ import resource
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import zenoh
 
-from rovergate.keys import TOPICS, Keys
+from rovergate.config import SessionConfig
+from rovergate.errors import TransportError
+from rovergate.graph import TOPICS, Module
+from rovergate.keys import Keys
 from rovergate.messages import MessageError, decode, encode
-from rovergate.session import SessionConfig, open_session
+from rovergate.module import STOP, ModuleLogic, StepOutput
+from rovergate.session import open_session
 from rovergate.types import StepTiming
 
 _MISSION_LOST = "__mission_lost__"
-
-#: Set by the CLI's SIGINT/SIGTERM handler; waits poll it and stop cleanly at a safe point.
-STOP = threading.Event()
 
 
 def cdr_encoding(topic: str) -> zenoh.Encoding:
@@ -48,29 +50,21 @@ def check_and_decode(topic: str, sample: zenoh.Sample) -> tuple[int, Any]:
     return decode(topic, sample.payload.to_bytes())
 
 
-@dataclass(frozen=True)
-class Input:
-    """One subscription of a module: ``lag=1`` means step t needs the message of step t-1."""
-
-    topic: str
-    lag: int = 0
-
-
 class ModuleNode:
     """Session, subscriptions, liveliness and lockstep for one module process."""
 
-    def __init__(self, name: str, session_cfg: SessionConfig, inputs: dict[str, Input],
-                 outputs: list[str], log: logging.Logger) -> None:
-        self.name = name
+    def __init__(self, spec: Module, session_cfg: SessionConfig, log: logging.Logger) -> None:
+        self.spec = spec
+        self.name = spec.name
         self.session_cfg = session_cfg
         self.log = log
         self.keys = Keys(session_cfg.namespace)
-        self.inputs = inputs
+        self.inputs = dict(spec.inputs)
+        outputs = list(spec.outputs)
         self.dropped = 0
         self._queue: queue.Queue[tuple[str, int, Any]] = queue.Queue()
-        self._buffers: dict[str, dict[int, Any]] = {n: {} for n in inputs}
+        self._buffers: dict[str, dict[int, Any]] = {n: {} for n in self.inputs}
         self._lock = threading.Lock()
-        self._publish_s = 0.0
         self._token: zenoh.LivelinessToken | None = None
         self.session = open_session(session_cfg)
         # BLOCK, not zenoh's default DROP: in lockstep every message is awaited, and DROP
@@ -81,7 +75,7 @@ class ModuleNode:
                                               congestion_control=zenoh.CongestionControl.BLOCK)
             for t in [*outputs, "timing"]}
         # The status topic is always watched: it carries the end of the mission.
-        watched = {i.topic for i in inputs.values()} | {"status"}
+        watched = {i.topic for i in self.inputs.values()} | {"status"}
         self._subscribers = [
             self.session.declare_subscriber(self.keys.key(t), self._callback(t)) for t in watched]
         self._mission_seen = False
@@ -117,9 +111,7 @@ class ModuleNode:
 
     def publish(self, topic: str, value: Any) -> None:
         """Encode ``value`` as the topic's ROS 2 type and put it."""
-        t0 = time.perf_counter()
         self._publishers[topic].put(encode(topic, value))
-        self._publish_s += time.perf_counter() - t0
 
     def serve(self, topic: str, make_value: Callable[[], Any]) -> None:
         """Answer queries on ``topic`` with the encoded value of ``make_value()``."""
@@ -147,8 +139,8 @@ class ModuleNode:
                     except MessageError as exc:
                         self.log.warning("dropped a reply on %s: %s", key, exc)
             time.sleep(0.2)
-        raise SystemExit(f"error: {self.name}: no answer on {key} within {timeout_s:.0f} s; "
-                         "is the simulator running in this namespace?")
+        raise TransportError(f"{self.name}: no answer on {key} within {timeout_s:.0f} s; "
+                             "is the simulator running in this namespace?")
 
     def wait_for_peers(self, timeout_s: float = 60.0) -> None:
         """With ``wait_for_peers`` set, wait until that many peers are linked, so that
@@ -158,9 +150,9 @@ class ModuleNode:
         while want and len(list(self.session.info.peers_zid())) < want:
             if time.monotonic() > deadline:
                 have = len(list(self.session.info.peers_zid()))
-                raise SystemExit(f"error: {self.name}: only {have} of {want} Zenoh peers linked "
-                                 f"after {timeout_s:.0f} s; check the --connect/--listen "
-                                 "endpoints")
+                raise TransportError(f"{self.name}: only {have} of {want} Zenoh peers linked "
+                                     f"after {timeout_s:.0f} s; check the --connect/--listen "
+                                     "endpoints")
             time.sleep(0.01)
 
     def ready(self, timeout_s: float = 60.0) -> None:
@@ -192,16 +184,16 @@ class ModuleNode:
             out[step] = value
         return out
 
-    def resume(self, step: int, restore: Callable[[int, dict[str, Any]], None] | None = None,
-               restore_inputs: dict[str, Input] | None = None, timeout_s: float = 60.0
-               ) -> None:
+    def resume(self, step: int, logic: ModuleLogic, timeout_s: float = 60.0) -> None:
         """Rebuild this module's state after a restart, then take up the lockstep at ``step``.
 
-        ``restore(s, inputs)`` is called for every step s < ``step`` with that step's
-        ``restore_inputs`` from the mission's journal (a module is a deterministic function
-        of its inputs, so this rebuilds exactly the state it had); then the inputs of
-        ``step`` on, published while the module was down, are taken from the journal.
+        ``logic.restore(s, inputs)`` is called for every step s < ``step`` with that step's
+        ``replay`` inputs (:mod:`rovergate.graph`) from the mission's journal (a module is a
+        deterministic function of its inputs, so this rebuilds exactly the state it had);
+        then the inputs of ``step`` on, published while the module was down, are taken from
+        the journal.
         """
+        restore_inputs = {n: self.spec.inputs[n] for n in self.spec.replay}
         if step <= 0:
             return
         # The mission journals every tick: an answer proves that the journal is reachable
@@ -209,21 +201,22 @@ class ModuleNode:
         deadline = time.monotonic() + timeout_s
         while not self.fetch_journal("status", 0, step, timeout_s=5.0):
             if time.monotonic() > deadline or STOP.is_set():
-                raise SystemExit(f"error: {self.name}: the mission's journal "
-                                 f"({self.keys.journal('status')}) did not answer within "
-                                 f"{timeout_s:.0f} s; cannot resume at step {step}")
+                raise TransportError(f"{self.name}: the mission's journal "
+                                     f"({self.keys.journal('status')}) did not answer within "
+                                     f"{timeout_s:.0f} s; cannot resume at step {step}")
             time.sleep(0.1)
         t0 = time.perf_counter()
-        if restore is not None and restore_inputs:
+        if restore_inputs:
             history = {n: self.fetch_journal(i.topic, 0, step - 1 - i.lag)
                        for n, i in restore_inputs.items()}
             for s in range(step):
                 missing = [n for n, i in restore_inputs.items()
                            if s - i.lag >= 0 and s - i.lag not in history[n]]
                 if missing:
-                    raise SystemExit(f"error: {self.name}: the mission's journal lacks "
-                                     f"{', '.join(missing)} of step {s}; cannot resume")
-                restore(s, {n: history[n].get(s - i.lag) for n, i in restore_inputs.items()})
+                    raise TransportError(f"{self.name}: the mission's journal lacks "
+                                         f"{', '.join(missing)} of step {s}; cannot resume")
+                logic.restore(s, {n: history[n].get(s - i.lag)
+                                  for n, i in restore_inputs.items()})
         # Inputs of this step and any later one already sent (the module redoes the last
         # step it finished, so the next step's inputs may be out too).
         for name, inp in self.inputs.items():
@@ -240,36 +233,30 @@ class ModuleNode:
         return [n for n, i in self.inputs.items()
                 if step - i.lag >= 0 and (step - i.lag) not in self._buffers[n]]
 
-    def _handle_complete(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
-                         step: int, last_step: int | None) -> int:
-        """Run the handler for every step, from ``step`` on, whose inputs are all in; returns
-        the first step still waiting."""
+    def _handle_complete(self, logic: ModuleLogic, step: int, last_step: int | None) -> int:
+        """Handle every step, from ``step`` on, whose inputs are all in; returns the first step
+        still waiting."""
         while not self._missing(step) and (last_step is None or step <= last_step):
             inputs = {n: self._buffers[n].pop(step - i.lag, None)
                       for n, i in self.inputs.items()}
-            self._publish_s = 0.0
-            t0 = time.perf_counter()
-            stages = handler(step, inputs)
-            if stages is None:
-                stages = {self.name: time.perf_counter() - t0 - self._publish_s}
-            for stage, seconds in stages.items():
+            out: StepOutput = logic.handle(step, inputs)
+            for topic, value in out.messages:
+                self.publish(topic, value)
+            for stage, seconds in out.stages.items():
                 self.publish("timing", StepTiming(step, stage, seconds, self.dropped))
             step += 1
         return step
 
-    def spin(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
-             idle_timeout_s: float, last_step: int | None = None) -> str:
-        """Run ``handler(step, inputs)`` for step 0, 1, ... as each step's inputs complete.
-
-        The handler publishes what it produces and may return ``{stage: seconds}`` to report
-        its work by stage; otherwise its wall time (publishing excluded) is reported under the
-        module's name on the timing topic.
+    def spin(self, logic: ModuleLogic, idle_timeout_s: float, last_step: int | None = None
+             ) -> str:
+        """Handle step 0, 1, ... as each step's inputs complete, publishing what the logic
+        produces and its stage timings.
 
         Returns why it stopped: ``done`` or ``aborted`` (the mission said so), ``mission-lost``
         (the mission's liveliness token vanished) or ``idle-timeout``.
         """
         # A resumed module may hold a complete step already (from the journal).
-        step = self._handle_complete(handler, self._first_step, last_step)
+        step = self._handle_complete(logic, self._first_step, last_step)
         while True:
             deadline = time.monotonic() + idle_timeout_s
             item = None
@@ -296,23 +283,23 @@ class ModuleNode:
             for name, inp in self.inputs.items():
                 if inp.topic == topic and msg_step >= step - inp.lag:
                     self._buffers[name][msg_step] = value
-            step = self._handle_complete(handler, step, last_step)
+            step = self._handle_complete(logic, step, last_step)
 
-    def run(self, handler: Callable[[int, dict[str, Any]], dict[str, float] | None],
-            idle_timeout_s: float, last_step: int | None = None, resume_step: int = 0,
-            restore: Callable[[int, dict[str, Any]], None] | None = None,
-            restore_inputs: dict[str, Input] | None = None) -> int:
-        """Declare readiness, spin until the mission ends, close; returns the exit code
-        (0 when the mission said done or aborted).
+    def run(self, logic: ModuleLogic, idle_timeout_s: float, last_step: int | None = None,
+            resume_step: int = 0) -> int:
+        """Serve the module's queryables, declare readiness, spin until the mission ends,
+        close; returns the exit code (0 when the mission said done or aborted).
 
-        ``resume_step`` > 0 (a restarted module): first rebuild the state with ``restore``
-        over the journalled ``restore_inputs`` of the steps before it (:meth:`resume`)."""
+        ``resume_step`` > 0 (a restarted module): first rebuild the state from the journal
+        (:meth:`resume`)."""
         try:
+            for topic in self.spec.serves:
+                self.serve(topic, lambda topic=topic: logic.serve(topic))
             if resume_step > 0:
                 self.wait_for_peers()
-                self.resume(resume_step, restore, restore_inputs)
+                self.resume(resume_step, logic)
             self.ready()
-            reason = self.spin(handler, idle_timeout_s, last_step)
+            reason = self.spin(logic, idle_timeout_s, last_step)
         finally:
             self.close()
         return 0 if reason in ("done", "aborted", "interrupted") else 1

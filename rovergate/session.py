@@ -1,32 +1,17 @@
-"""Zenoh session configuration shared by every program (the session flags)."""
+"""Opening a Zenoh session from the session flags (:class:`rovergate.config.SessionConfig`).
+
+This and :mod:`rovergate.node` are the shared package's only Zenoh imports: the configuration
+and every module's logic load without it."""
 
 from __future__ import annotations
 
 import json
 import socket
-from dataclasses import dataclass
-from typing import Literal
 
 import zenoh
 
-
-@dataclass
-class SessionConfig:
-    """How a process joins the Zenoh network."""
-
-    mode: Literal["peer", "client", "router"] = "peer"
-    """Zenoh mode of this process."""
-    connect: tuple[str, ...] = ()
-    """Endpoints to connect to, e.g. tcp/127.0.0.1:7447."""
-    listen: tuple[str, ...] = ()
-    """Endpoints to listen on, e.g. tcp/0.0.0.0:7447 to let other machines connect."""
-    namespace: str = "rover"
-    """Prefix of every key expression, so that several rovers can share one network."""
-    multicast_scouting: bool = False
-    """Discover peers by UDP multicast. Off by default: endpoints are explicit."""
-    wait_for_peers: int = 0
-    """Before declaring itself ready, wait until this many peers are linked (`rovergate run`
-    sets it so that the first messages of a mission reach every module)."""
+from rovergate.config import SessionConfig
+from rovergate.errors import ConfigError
 
 
 def zenoh_config(cfg: SessionConfig) -> zenoh.Config:
@@ -44,8 +29,8 @@ def open_session(cfg: SessionConfig) -> zenoh.Session:
     try:
         return zenoh.open(zenoh_config(cfg))
     except Exception as exc:
-        raise SystemExit(
-            f"error: could not open a Zenoh session (mode={cfg.mode}, listen={list(cfg.listen)}, "
+        raise ConfigError(
+            f"could not open a Zenoh session (mode={cfg.mode}, listen={list(cfg.listen)}, "
             f"connect={list(cfg.connect)}): {exc}. Check the endpoints: they look like "
             "tcp/127.0.0.1:7447, and a listen port must be free.") from None
 

@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from rovergate.session import free_loopback_port
 
-ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
+ROVERGATE = [sys.executable, "-m", "mission.cli"]
 
 
 def run_cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
@@ -117,7 +117,7 @@ def test_a_module_that_dies_stops_the_mission_with_its_name(tmp_path: Path):
     assert ready.wait(120), "".join(lines[-30:])
     time.sleep(1.0)
     config = str(tmp_path / "config.json")
-    pids = subprocess.run(["pgrep", "-f", f"rovergate.cli planner --config {config}"],
+    pids = subprocess.run(["pgrep", "-f", f"mission.cli planner --config {config}"],
                           capture_output=True, text=True).stdout.split()
     assert pids, "planner process not found"
     os.kill(int(pids[0]), signal.SIGKILL)

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gate.conditions import CONDITIONS
 from gate.filter import ObservationGate
 from gate.gate import Gate, oracle_tags
+from rovergate.conditions import CONDITIONS
 from rovergate.config import GateConfig, SensorConfig
-from rovergate.platform import R_BODY_OPTICAL
+from rovergate.geometry import R_BODY_OPTICAL
 from rovergate.types import (
     PREDICTED_DTYPE,
     SURFACE_DTYPE,

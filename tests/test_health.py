@@ -19,7 +19,7 @@ from mission.journal import Journal
 from rovergate.messages import decode
 from rovergate.session import SessionConfig, free_loopback_port, zenoh_config
 
-ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
+ROVERGATE = [sys.executable, "-m", "mission.cli"]
 
 
 def test_journal_keeps_every_step_of_replay_topics_and_the_last_of_bulky_ones():

@@ -165,7 +165,7 @@ def test_settings_change_in_flight_only_where_allowed():
 
 # --- end to end: the process set, the bridge and a ground station, in Zenoh peer mode ------
 
-ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
+ROVERGATE = [sys.executable, "-m", "mission.cli"]
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 

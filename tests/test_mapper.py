@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapper.integrate import VoxelSurface, backproject, voxel_first_points
+from mapper.integrate import VoxelSurface, backproject
 from mapper.mapper import Mapper
 from rovergate.config import MapperConfig
-from rovergate.platform import R_BODY_OPTICAL
+from rovergate.geometry import R_BODY_OPTICAL, voxel_first_points
 from rovergate.types import CameraIntrinsics, Pose, SensorFrame
 
 

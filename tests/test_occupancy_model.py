@@ -26,7 +26,7 @@ from mapper.model import (
     shipped_checkpoint,
 )
 from mapper.training import TrainConfig, gather_world, make_batch, masked_loss, train
-from rovergate.platform import R_BODY_OPTICAL
+from rovergate.geometry import R_BODY_OPTICAL
 from rovergate.types import CameraIntrinsics
 
 
@@ -136,7 +136,7 @@ def test_missing_or_corrupt_checkpoint_is_one_line_saying_how_to_rebuild(tmp_pat
     with pytest.raises(SystemExit, match=r"corrupt") as e:
         load_checkpoint(cut)
     assert "\n" not in str(e.value)
-    r = subprocess.run([sys.executable, "-m", "rovergate.cli", "run", "--condition", "learned",
+    r = subprocess.run([sys.executable, "-m", "mission.cli", "run", "--condition", "learned",
                         "--mapper.checkpoint", str(junk), "--out", str(tmp_path / "r")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode != 0

@@ -10,7 +10,7 @@ from planner.gain import GainField, render_gain, visible_mask
 from planner.motion import path_length, plan_se2
 from planner.planner import BeamPlanner, GreedyPlanner, novel_mask
 from rovergate.config import MissionConfig, RoverConfig
-from rovergate.platform import R_BODY_OPTICAL
+from rovergate.geometry import R_BODY_OPTICAL
 from rovergate.types import PLANNER_DTYPE, CameraIntrinsics, PlannerMap, Pose, Source, make_cloud
 
 K = CameraIntrinsics.from_fov(40, 30, 45.0)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rovergate.session import free_loopback_port
 
-ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
+ROVERGATE = [sys.executable, "-m", "mission.cli"]
 SUBSCRIBER = Path(__file__).resolve().parent.parent / "examples" / "remote_subscriber.py"
 
 

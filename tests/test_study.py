@@ -17,7 +17,7 @@ import pytest
 from mission.metrics import auc, final_coverage, s70, suppression_audit
 from mission.tables import bootstrap_ci, table1, table2
 
-ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
+ROVERGATE = [sys.executable, "-m", "mission.cli"]
 
 
 def test_final_coverage_auc_and_s70_on_hand_made_curves():

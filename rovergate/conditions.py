@@ -1,4 +1,6 @@
-"""The planner-facing occupancy conditions (paper, equation 2, plus the gate of equation 4).
+"""The planner-facing occupancy conditions, the vocabulary the mapper, the gate, the study and
+the ground commands share
+(paper, equation 2, plus the gate of equation 4).
 
 With S_t the observed surface, O_hat_t the thresholded prediction, FP_t / FN_t the oracle-tagged
 errors at delta = 0.03 d_scene, and O* the reference occupied samples:
@@ -18,6 +20,8 @@ gated       S_t + (O_hat_t - U_t)                 prediction
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from rovergate.errors import UnknownNameError
 
 
 @dataclass(frozen=True)
@@ -41,8 +45,8 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in [
 
 
 def get_condition(name: str) -> Condition:
-    """The named condition; an unknown name gives the list of valid ones."""
+    """The named condition; raises :class:`UnknownNameError` listing the valid ones."""
     if name not in CONDITIONS:
-        raise SystemExit(f"error: unknown condition {name!r}; choose one of: "
-                         f"{', '.join(CONDITIONS)}")
+        raise UnknownNameError(f"unknown condition {name!r}; choose one of: "
+                               f"{', '.join(CONDITIONS)} (--condition)")
     return CONDITIONS[name]

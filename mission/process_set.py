@@ -1,0 +1,269 @@
+"""The process set: every module its own OS process, the mission's messages over Zenoh.
+
+:class:`ProcessSetTransport` implements :class:`mission.transport.Transport` by composing
+parts that each do one job:
+
+- a Zenoh peer session that listens on a free loopback port (plus any ``--listen`` endpoints,
+  for subscribers on other machines), and the mission's liveliness token;
+- the :class:`~mission.inbox.Inbox` its subscriptions fill (the mission's inputs, from the
+  graph);
+- the :class:`~mission.journal.JournalServer` (the past inputs a restarted module replays);
+- the :class:`~mission.clock.MissionClock` (the ticks);
+- the :class:`~mission.supervisor.ProcessSupervisor` (launch, watch, restart; no Zenoh).
+
+Health: when a module dies (or its token vanishes), the loop cannot go on without it, so the
+rover holds still: the simulator executes only the path of the step before, and none comes.
+The module is restarted with ``--resume-step`` and rebuilds its state from the journal; the
+loop resumes at the same step, with the same numbers as if nothing had happened.
+
+It is also the :class:`mission.operations.MissionControl` that ground commands act through.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shlex
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from mission.clock import MissionClock
+from mission.inbox import Inbox
+from mission.journal import Journal, JournalServer
+from mission.supervisor import ProcessSupervisor, RestartEvent
+from rovergate.config import MissionConfig, save_config
+from rovergate.errors import MissionFailed
+from rovergate.graph import LAUNCHED, MODULES
+from rovergate.keys import Keys
+from rovergate.messages import MessageError
+from rovergate.module import STOP
+from rovergate.node import check_and_decode
+from rovergate.session import free_loopback_port, open_session
+from rovergate.types import MissionStatus, StepTiming
+
+log = logging.getLogger("rovergate.mission")
+
+#: The mission's inputs, by topic (the loop receives them by their names in the graph).
+_MISSION_INPUTS = {i.topic: name for name, i in MODULES["mission"].inputs.items()}
+#: Which module's last output each topic is (a restarted module is back once it comes).
+_PROGRESS = {MODULES[m].progress: m for m in LAUNCHED}
+
+
+class ProcessSetTransport:
+    """The modules as processes over Zenoh (see the module docstring)."""
+
+    mode = "processes"
+
+    def __init__(self, cfg: MissionConfig, out: Path) -> None:
+        self._cfg = cfg
+        self.out = out
+        self.keys = Keys(cfg.session.namespace)
+        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+        session_cfg = dataclasses.replace(cfg.session, mode="peer", wait_for_peers=0,
+                                          listen=(self.endpoint, *cfg.session.listen))
+        self.session = open_session(session_cfg)
+        self.journal = Journal()
+        watched = set(_MISSION_INPUTS) | {"timing"}
+        self.inbox = Inbox(watched - {"timing"})
+        self._timings: dict[tuple[str, int], StepTiming] = {}
+        self._dropped = 0
+        cv = self.inbox.cv
+        self.journal_server = JournalServer(self.session, self.keys, self.journal, cv)
+        self.clock = MissionClock(self.session, self.keys, self.journal, cv)
+        self.config_path = out / "config.json"
+        self._configs = 0
+        self.supervisor = ProcessSupervisor(LAUNCHED, self._command, out / "logs",
+                                            cfg.max_restarts)
+        self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_sample(t))
+                      for t in watched | (self.journal.topics - {"status"})]
+        self._alive_sub = self.session.liveliness().declare_subscriber(
+            self.keys.alive_all, self._on_alive, history=True)
+        self._token = self.session.liveliness().declare_token(self.keys.alive("mission"))
+
+    # --- MissionControl -------------------------------------------------------------------
+
+    @property
+    def cfg(self) -> MissionConfig:
+        """The configuration as it stands (ground commands change it)."""
+        return self._cfg
+
+    @property
+    def restart_events(self) -> list[RestartEvent]:
+        return self.supervisor.events
+
+    def publish_status(self, status: MissionStatus) -> None:
+        self.clock.publish(status)
+
+    def check_health(self) -> bool:
+        """Restart every module that died; True when one was."""
+        with self.inbox.cv:
+            return self._check_processes()
+
+    def reconfigure(self, cfg: MissionConfig, modules: list[str], step: int) -> None:
+        """Restart ``modules`` with ``cfg`` at the boundary before ``step`` (every module is
+        then waiting for step ``step``'s inputs); they rebuild their state from the journal."""
+        self._cfg = cfg
+        self._configs += 1
+        self.config_path = self.out / f"config.{self._configs}.json"
+        save_config(cfg, self.config_path)
+        with self.inbox.cv:
+            self.supervisor.replace(modules, step)
+        self._wait(lambda: self.supervisor.alive.issuperset(modules),
+                   "the liveliness tokens of the restarted " + ", ".join(modules),
+                   cfg.ready_timeout_s)
+
+    # --- callbacks (Zenoh's threads) ------------------------------------------------------
+
+    def _on_sample(self, topic: str) -> Callable[[zenoh.Sample], None]:
+        journalled = topic in self.journal.topics
+
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                step, value = check_and_decode(topic, sample)
+            except MessageError as exc:
+                with self.inbox.cv:
+                    self._dropped += 1
+                log.warning("dropped a message on %s: %s", self.keys.key(topic), exc)
+                return
+            with self.inbox.cv:
+                if journalled:
+                    self.journal.add(topic, step, sample.payload.to_bytes())
+                if topic == "timing":
+                    # A restarted module redoes its last step: one timing per stage and step.
+                    self._timings[(value.module, value.step)] = value
+                self.inbox.put(topic, step, value)
+                if topic in _PROGRESS:
+                    self.supervisor.mark_progress(_PROGRESS[topic], step)
+        return callback
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.inbox.cv:
+            self.supervisor.mark_alive(name, sample.kind == zenoh.SampleKind.PUT)
+            self.inbox.cv.notify_all()
+
+    # --- processes ------------------------------------------------------------------------
+
+    def _command(self, name: str, resume_step: int | None) -> list[str]:
+        cfg = self._cfg
+        if name == "planner" and cfg.planner.command:
+            # A planner of the user's own: it gets the endpoint and the namespace.
+            return [*shlex.split(cfg.planner.command), "--connect", self.endpoint,
+                    "--namespace", cfg.session.namespace]
+        cmd = [sys.executable, "-m", "mission.cli", name, "--config", str(self.config_path),
+               "--mode", "peer", "--connect", self.endpoint, "--listen", "tcp/127.0.0.1:0",
+               "--namespace", cfg.session.namespace, "--wait-for-peers", str(len(LAUNCHED))]
+        if resume_step is not None:
+            cmd += ["--resume-step", str(resume_step)]
+        return cmd
+
+    def _check_processes(self) -> bool:
+        dead = self.supervisor.dead()
+        for name, reason in dead:
+            # Resume at the last step whose output the mission has seen, redone: whatever of
+            # it reached others again is a duplicate of the same bytes, which they ignore.
+            step = max(0, self.inbox.last_seen.get(MODULES[name].progress, 0))
+            self.supervisor.restart(name, reason, step)
+        return bool(dead)
+
+    def _wait(self, ready: Callable[[], bool], what: str, timeout_s: float,
+              restart: bool = True) -> None:
+        deadline = time.monotonic() + timeout_s
+        with self.inbox.cv:
+            while not ready():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise MissionFailed(f"timed out after {timeout_s:.0f} s waiting for {what}")
+                # Woken by every message and token; the timeout only bounds how late a dead
+                # process (which sends nothing) is noticed.
+                self.inbox.cv.wait(min(left, 0.05))
+                if STOP.is_set():
+                    raise KeyboardInterrupt
+                if restart:
+                    if self._check_processes():  # a restart gets the full time again
+                        deadline = time.monotonic() + self._cfg.ready_timeout_s + timeout_s
+                else:
+                    self.supervisor.fail_on_exit()
+
+    # --- Transport ------------------------------------------------------------------------
+
+    def start(self) -> None:
+        save_config(self._cfg, self.config_path)
+        self.supervisor.start_all()
+        self._wait(lambda: self.supervisor.all_alive,
+                   "the liveliness tokens of " + ", ".join(
+                       self.keys.alive(m) for m in LAUNCHED if m not in self.supervisor.alive),
+                   self._cfg.ready_timeout_s, restart=False)
+        log.info("all modules ready: %s", ", ".join(LAUNCHED))
+
+    def ask(self, topic: str) -> Any:
+        key = self.keys.key(topic)
+        deadline = time.monotonic() + self._cfg.ready_timeout_s
+        while time.monotonic() < deadline:
+            self.supervisor.fail_on_exit()
+            for reply in self.session.get(key, timeout=30.0, attachment="mission"):
+                if reply.ok is not None:
+                    return check_and_decode(topic, reply.ok)[1]
+            # No reply yet: a queryable that was just declared may not be routed; ask again.
+            time.sleep(0.2)
+        raise MissionFailed(f"timed out waiting for an answer on {key}")
+
+    def tick(self, status: MissionStatus) -> None:
+        self.clock.publish(status)
+
+    def receive(self, name: str, step: int) -> Any:
+        topic = MODULES["mission"].inputs[name].topic
+        self._wait(lambda: self.inbox.has(topic, step),
+                   f"{self.keys.key(topic)} of step {step}", self._cfg.step_timeout_s)
+        with self.inbox.cv:
+            return self.inbox.pop(topic, step)
+
+    def timings(self) -> list[StepTiming]:
+        with self.inbox.cv:
+            return list(self._timings.values())
+
+    def dropped(self) -> int:
+        with self.inbox.cv:
+            module_drops: dict[str, int] = {}
+            for t in self._timings.values():
+                module_drops[t.module] = max(module_drops.get(t.module, 0), t.dropped_total)
+        return self._dropped + _per_module(module_drops)
+
+    def restarts(self) -> list[dict[str, Any]]:
+        return [e.as_dict() for e in self.supervisor.events]
+
+    def finish(self, final: MissionStatus, failed: bool) -> None:
+        try:
+            self.clock.publish(final)
+        finally:
+            if failed:
+                self.supervisor.kill_all()
+            codes = self.supervisor.shutdown()
+            self._token.undeclare()
+            for s in self._subs:
+                s.undeclare()
+            self.journal_server.close()
+            self.clock.close()
+            self._alive_sub.undeclare()
+            self.session.close()
+        bad = {n: c for n, c in codes.items() if c != 0}
+        if bad and not failed:
+            raise MissionFailed("modules did not exit cleanly: " + ", ".join(
+                f"{n} (exit code {c})" for n, c in bad.items()))
+
+
+def _per_module(stage_drops: dict[str, int]) -> int:
+    """Each module reports its running count of dropped messages with every stage timing:
+    the mission's total counts each module once (its largest count over its stages)."""
+    from rovergate.graph import stage_module
+    stages = stage_module()
+    by_module: dict[str, int] = {}
+    for stage, n in stage_drops.items():
+        module = stages.get(stage, stage)
+        by_module[module] = max(by_module.get(module, 0), n)
+    return sum(by_module.values())

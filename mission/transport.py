@@ -1,0 +1,141 @@
+"""What the mission loop drives: a transport that carries the graph's messages.
+
+The loop (:func:`mission.loop.run_mission`) is written once, against :class:`Transport`: it
+ticks the clock, receives its inputs of each step (declared as ``MODULES["mission"]`` in
+:mod:`rovergate.graph`) and keeps the record. Two transports implement it:
+
+- :class:`InProcessTransport` (here): every module's logic in this process, called directly
+  and routed by the graph; no Zenoh.
+- :class:`mission.process_set.ProcessSetTransport`: every module its own OS process, over
+  Zenoh, with health checks and restarts.
+
+Each module is a deterministic function of its inputs, so both give the same numbers to the
+last digit.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+from rovergate.config import MissionConfig
+from rovergate.errors import MissionFailed
+from rovergate.graph import LAUNCHED, MODULES, consumers, producer
+from rovergate.messages import stamped
+from rovergate.module import ModuleLogic
+from rovergate.types import MissionStatus, StepTiming
+
+
+class Transport(Protocol):
+    """The contract between the mission loop and the modules' transport."""
+
+    mode: str
+    """``in-process`` or ``processes`` (recorded in metrics.json)."""
+
+    def start(self) -> None:
+        """Bring every module up; return when all are ready for step 0."""
+        ...
+
+    def ask(self, topic: str) -> Any:
+        """The value of a queryable (the mission asks for ``truth_surface``)."""
+        ...
+
+    def tick(self, status: MissionStatus) -> None:
+        """Publish the clock: a ``running`` status starts step ``status.step``."""
+        ...
+
+    def receive(self, name: str, step: int) -> Any:
+        """The mission's input ``name`` (see ``MODULES["mission"].inputs``) of ``step``,
+        waiting for it if it has not come yet."""
+        ...
+
+    def timings(self) -> list[StepTiming]:
+        """Every stage timing the modules reported, one per (stage, step)."""
+        ...
+
+    def dropped(self) -> int:
+        """Malformed messages dropped, by the modules and the mission."""
+        ...
+
+    def restarts(self) -> list[dict[str, Any]]:
+        """Modules that died and were restarted."""
+        ...
+
+    def finish(self, final: MissionStatus, failed: bool) -> None:
+        """Publish the final status, stop every module, release everything. Raises
+        :class:`MissionFailed` when a module did not exit cleanly (unless ``failed``)."""
+        ...
+
+
+class InProcessTransport:
+    """Every module's logic in this process, driven by the graph: a tick is delivered to the
+    modules that read it, and every module whose inputs of its next step are complete runs,
+    its outputs delivered in turn, until none can."""
+
+    mode = "in-process"
+
+    def __init__(self, cfg: MissionConfig) -> None:
+        self.cfg = cfg
+        self.logic: dict[str, ModuleLogic] = {}
+        self._buffers: dict[str, dict[str, dict[int, Any]]] = {
+            m: {n: {} for n in MODULES[m].inputs} for m in (*LAUNCHED, "mission")}
+        self._next: dict[str, int] = dict.fromkeys(LAUNCHED, 0)
+        self._timings: list[StepTiming] = []
+
+    def start(self) -> None:
+        from mission.modules import make_logic
+        try:
+            for name in LAUNCHED:
+                self.logic[name] = make_logic(name, self.cfg, self.ask)
+        except BaseException:
+            self._close()
+            raise
+
+    def ask(self, topic: str) -> Any:
+        return stamped(topic, self.logic[producer(topic)].serve(topic))[1]
+
+    def tick(self, status: MissionStatus) -> None:
+        self._deliver("status", status)
+        progress = True
+        while progress:
+            progress = False
+            for name, logic in self.logic.items():
+                step, spec = self._next[name], logic.spec
+                if step > spec.last_step(self.cfg.steps) or any(
+                        step - i.lag >= 0 and step - i.lag not in self._buffers[name][n]
+                        for n, i in spec.inputs.items()):
+                    continue
+                inputs = {n: self._buffers[name][n].pop(step - i.lag, None)
+                          for n, i in spec.inputs.items()}
+                out = logic.handle(step, inputs)
+                self._timings += [StepTiming(step, stage, s, 0) for stage, s in out.stages.items()]
+                for topic, value in out.messages:
+                    self._deliver(topic, value)
+                self._next[name] = step + 1
+                progress = True
+
+    def _deliver(self, topic: str, value: Any) -> None:
+        step, value = stamped(topic, value)
+        for module, name, _ in consumers(topic):
+            self._buffers[module][name][step] = value
+
+    def receive(self, name: str, step: int) -> Any:
+        try:
+            return self._buffers["mission"][name].pop(step)
+        except KeyError:
+            raise MissionFailed(f"no {name} of step {step}: the modules produced none") from None
+
+    def timings(self) -> list[StepTiming]:
+        return list(self._timings)
+
+    def dropped(self) -> int:
+        return 0
+
+    def restarts(self) -> list[dict[str, Any]]:
+        return []
+
+    def finish(self, final: MissionStatus, failed: bool) -> None:
+        self._close()
+
+    def _close(self) -> None:
+        while self.logic:
+            self.logic.popitem()[1].close()

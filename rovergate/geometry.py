@@ -1,0 +1,113 @@
+"""Geometry every module shares: rotations and quaternions, where the camera sits on each
+platform, and the voxel keys that S_t, the reference occupancy O* and the audit agree on.
+
+Two platforms: ``rover`` (SE(2) on the terrain; the camera on a pan-tilt mast) and ``flyer``
+(a free camera; its body pose is the camera's, heading and pitch included).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rovergate.config import SensorConfig
+from rovergate.errors import UnknownNameError
+
+_OFFSET = 1 << 20  # voxel indices are shifted into [0, 2^21) so they pack into one int64
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+#: Optical frame (x right, y down, z forward) expressed in a body frame (x fwd, y left, z up).
+R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+PLATFORMS = ("rover", "flyer")
+
+
+def check_platform(name: str) -> None:
+    """Raises :class:`UnknownNameError` (listing the platforms) for an unknown name."""
+    if name not in PLATFORMS:
+        raise UnknownNameError(f"unknown platform {name!r}; choose one of: "
+                               f"{', '.join(PLATFORMS)} (--platform)")
+
+
+def camera_from_base(T_map_base: np.ndarray, sensor: SensorConfig,
+                     platform: str = "rover") -> np.ndarray:
+    """(4, 4) optical-frame pose of the camera for a base pose of ``platform``."""
+    if platform == "flyer":
+        T = T_map_base.copy()
+        T[:3, :3] = T_map_base[:3, :3] @ R_BODY_OPTICAL
+        return T
+    T_base_mast = np.eye(4)
+    T_base_mast[:3, :3] = rot_z(np.radians(sensor.pan_deg)) @ rot_y(-np.radians(sensor.tilt_deg))
+    T_base_mast[:3, 3] = [sensor.mast_forward_m, 0.0, sensor.mast_height_m]
+    T_mast_optical = np.eye(4)
+    T_mast_optical[:3, :3] = R_BODY_OPTICAL
+    return T_map_base @ T_base_mast @ T_mast_optical
+
+
+def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """(4,) unit quaternion (x, y, z, w) -> (3, 3) rotation matrix."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix -> (4,) unit quaternion (x, y, z, w) with w >= 0."""
+    m = np.asarray(R, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q, dtype=np.float64)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def yaw_to_quat(yaw: float) -> np.ndarray:
+    """Heading about map z -> (4,) quaternion (x, y, z, w)."""
+    return np.array([0.0, 0.0, np.sin(yaw / 2.0), np.cos(yaw / 2.0)])
+
+
+def quat_to_yaw(q_xyzw: np.ndarray) -> float:
+    """Heading about map z of a quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(N,) int64 key of the voxel that holds each point."""
+    idx = np.floor(points.astype(np.float64) / voxel_m).astype(np.int64) + _OFFSET
+    return (idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2]
+
+
+def voxel_first_points(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """The first point of each occupied voxel, in order of first appearance."""
+    _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)
+    return points[np.sort(first)]
