@@ -1,17 +1,27 @@
-"""Shared fixtures: small missions and loopback Zenoh sessions (scouting off)."""
+"""Shared fixtures: small missions, loopback Zenoh sessions (scouting off), and the one way
+tests start process sets (:func:`launch`): every port free, every wait event-driven with a
+deadline that says what it awaited, nothing left running."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import re
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 import zenoh
 
 from rover_sim.catalog import load_scene, resolve_scene
-from rovergate.config import MissionConfig
-from rovergate.session import SessionConfig, free_loopback_port, zenoh_config
+from rovergate.config import MissionConfig, SessionConfig
+from rovergate.session import free_loopback_port, zenoh_config
+
+#: The command line, as users type it (the mission launches its modules the same way).
+ROVERGATE = [sys.executable, "-m", "mission.cli"]
 
 
 @pytest.fixture(scope="session")
@@ -39,3 +49,131 @@ def loopback_pair():
 
 def read_metrics(out: Path) -> dict:
     return json.loads((out / "metrics.json").read_text())
+
+
+def run_cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    """``rovergate ARGS --no-progress`` to completion."""
+    return subprocess.run([*ROVERGATE, *args, "--no-progress"], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+class Waiter:
+    """A condition that callbacks notify and a test waits on, with a deadline that says what
+    it awaited (never a fixed sleep)."""
+
+    def __init__(self) -> None:
+        self.cv = threading.Condition()
+
+    def notify(self) -> None:
+        with self.cv:
+            self.cv.notify_all()
+
+    def wait_for(self, predicate: Callable[[], object], timeout_s: float, what: str,
+                 detail: Callable[[], str] = lambda: "") -> object:
+        with self.cv:
+            value = self.cv.wait_for(predicate, timeout_s)
+        if not value:
+            raise AssertionError(f"no {what} within {timeout_s:.0f} s{detail()}")
+        return value
+
+
+class Mission:
+    """A ``rovergate ...`` process whose stderr is read line by line as it comes."""
+
+    def __init__(self, args: list[str]) -> None:
+        self.args = args
+        self.proc = subprocess.Popen([*ROVERGATE, *args], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+        self.lines: list[str] = []
+        self.waiter = Waiter()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            with self.waiter.cv:
+                self.lines.append(line)
+                self.waiter.cv.notify_all()
+        with self.waiter.cv:
+            self.lines.append("")  # end of stream
+            self.waiter.cv.notify_all()
+
+    @property
+    def text(self) -> str:
+        return "".join(self.lines)
+
+    def _tail(self) -> str:
+        return "; its stderr ends:\n" + "".join(self.lines[-30:])
+
+    def wait_for_line(self, pattern: str, timeout_s: float = 120) -> re.Match:
+        """The first stderr line matching ``pattern`` (a regex), waiting for it."""
+        def state() -> re.Match | str | None:
+            for line in self.lines:
+                if m := re.search(pattern, line):
+                    return m
+            return "ended" if self.lines[-1:] == [""] else None
+        result = self.waiter.wait_for(state, timeout_s, f"line /{pattern}/ from rovergate",
+                                      self._tail)
+        if result == "ended":
+            raise AssertionError(f"rovergate exited with no line /{pattern}/{self._tail()}")
+        return result
+
+    def pid(self, module: str) -> int:
+        """The pid of the live ``module`` process (from the latest "started" line)."""
+        self.wait_for_line(rf"started {module} \(pid \d+\)")
+        with self.waiter.cv:
+            pids = [int(m.group(1)) for line in self.lines
+                    if (m := re.search(rf"started {module} \(pid (\d+)\)", line))]
+        return pids[-1]
+
+    def finish(self, timeout_s: float = 240) -> int:
+        """Wait for the process to exit; its exit code."""
+        code = self.proc.wait(timeout_s)
+        self._reader.join(10)
+        return code
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(30)
+
+
+@pytest.fixture
+def launch() -> Iterator[Callable[..., Mission]]:
+    """Start ``rovergate`` processes (``launch("run", "--steps", "5", ...)``); any still
+    running at the end of the test is killed."""
+    started: list[Mission] = []
+
+    def start(*args: str) -> Mission:
+        m = Mission([*args, "--no-progress"] if args and args[0] == "run" else list(args))
+        started.append(m)
+        return m
+    yield start
+    for m in started:
+        m.kill()
+
+
+class StatusWatcher:
+    """A client session on a mission's ``--listen`` endpoint that records the steps of the
+    mission clock's ticks."""
+
+    def __init__(self, port: int) -> None:
+        from rovergate.messages import decode
+        self.steps: list[int] = []
+        self.waiter = Waiter()
+        self.session = zenoh.open(zenoh_config(SessionConfig(
+            mode="client", connect=(f"tcp/127.0.0.1:{port}",))))
+
+        def on_status(sample: zenoh.Sample) -> None:
+            with self.waiter.cv:
+                self.steps.append(decode("status", sample.payload.to_bytes())[0])
+                self.waiter.cv.notify_all()
+        self._sub = self.session.declare_subscriber("rover/mission/status", on_status)
+
+    def wait_step(self, step: int, timeout_s: float = 120) -> None:
+        self.waiter.wait_for(lambda: self.steps and max(self.steps) >= step, timeout_s,
+                             f"tick of step {step}")
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()

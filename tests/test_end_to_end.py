@@ -7,24 +7,18 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zenoh
+from conftest import StatusWatcher, run_cli
 from rosbags.typesys import Stores, get_typestore
 
 from rovergate.session import free_loopback_port
 
-ROVERGATE = [sys.executable, "-m", "mission.cli"]
-
-
-def run_cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
-    return subprocess.run([*ROVERGATE, *args, "--no-progress"], capture_output=True, text=True,
-                          timeout=timeout)
-
+pytestmark = pytest.mark.e2e
 
 def test_process_set_runs_and_matches_in_process(tmp_path: Path):
     procs = run_cli("run", "--steps", "10", "--out", str(tmp_path / "p"))
@@ -50,13 +44,11 @@ def test_process_set_runs_and_matches_in_process(tmp_path: Path):
         assert "liveliness token" in log and "mission done" in log, module
 
 
-def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path):
+def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path, launch):
     """A session that knows only zenoh and rosbags reads the planner-facing map."""
     port = free_loopback_port()
-    mission = subprocess.Popen(
-        [*ROVERGATE, "run", "--steps", "8", "--no-progress", "--out", str(tmp_path),
-         "--listen", f"tcp/127.0.0.1:{port}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True)
+    mission = launch("run", "--steps", "8", "--out", str(tmp_path), "--listen",
+                     f"tcp/127.0.0.1:{port}")
     store = get_typestore(Stores.ROS2_HUMBLE)
     got: list = []
     done = threading.Event()
@@ -67,26 +59,20 @@ def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path):
         got.append((schema, msg))
         done.set()
 
+    # The mission's session listens before it starts any module.
+    mission.wait_for_line(r"started sim \(pid")
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    deadline = time.monotonic() + 60
-    session = None
-    while session is None:
-        try:
-            session = zenoh.open(conf)
-        except zenoh.ZError:
-            assert time.monotonic() < deadline, "could not connect to the mission's endpoint"
-            time.sleep(0.2)
+    session = zenoh.open(conf)
     sub = session.declare_subscriber("rover/map/occupancy/planner", on_sample)
     try:
-        assert done.wait(120), "no planner-facing occupancy received"
+        assert done.wait(120), "no planner-facing occupancy received within 120 s"
     finally:
         sub.undeclare()
         session.close()
-        out, err = mission.communicate(timeout=240)
-    assert mission.returncode == 0, err[-3000:]
+    assert mission.finish() == 0, mission.text[-3000:]
     schema, msg = got[0]
     assert schema == "application/cdr;sensor_msgs/msg/PointCloud2"
     assert [f.name for f in msg.fields] == ["x", "y", "z", "source", "views"]
@@ -97,36 +83,24 @@ def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path):
     assert np.isfinite(xyz["x"]).all() and np.abs(xyz["x"]).max() < 30
 
 
-def test_a_module_that_dies_stops_the_mission_with_its_name(tmp_path: Path):
+def test_a_module_that_dies_stops_the_mission_with_its_name(tmp_path: Path, launch):
     """With no restarts allowed (tests/test_health.py covers restarting), a module's death
     ends the mission with its name, and no process is left behind."""
-    mission = subprocess.Popen(
-        [*ROVERGATE, "run", "--steps", "500", "--no-progress", "--out", str(tmp_path),
-         "--max-restarts", "0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    lines: list[str] = []
-    ready = threading.Event()
-
-    def read():
-        for line in mission.stderr:
-            lines.append(line)
-            if "all modules ready" in line:
-                ready.set()
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    assert ready.wait(120), "".join(lines[-30:])
-    time.sleep(1.0)
+    port = free_loopback_port()
+    mission = launch("run", "--steps", "500", "--out", str(tmp_path), "--max-restarts", "0",
+                     "--listen", f"tcp/127.0.0.1:{port}")
+    mission.wait_for_line("all modules ready")
+    watcher = StatusWatcher(port)
+    try:
+        watcher.wait_step(2)  # the loop is running
+        os.kill(mission.pid("planner"), signal.SIGKILL)
+        assert mission.finish(120) == 1
+    finally:
+        watcher.close()
+    assert "module 'planner' exited with code -9 during the mission, after 0 restarts" in \
+        mission.text
+    # The mission waits for every module to exit before it does.
     config = str(tmp_path / "config.json")
-    pids = subprocess.run(["pgrep", "-f", f"mission.cli planner --config {config}"],
-                          capture_output=True, text=True).stdout.split()
-    assert pids, "planner process not found"
-    os.kill(int(pids[0]), signal.SIGKILL)
-    mission.wait(120)
-    reader.join(10)
-    text = "".join(lines)
-    assert mission.returncode == 1
-    assert "module 'planner' exited with code -9 during the mission, after 0 restarts" in text
-    time.sleep(1.0)
     left = subprocess.run(["pgrep", "-f", f"--config {config}"], capture_output=True, text=True)
     assert left.stdout.strip() == "", "modules left running"
 
@@ -168,7 +142,7 @@ def test_gated_condition_withholds_part_of_the_prediction(tmp_path: Path):
     assert m["suppressed_fp_share"] == sum(fp) / sum(held)
 
 
-def test_ground_truth_reaches_only_the_evaluator(tmp_path: Path):
+def test_ground_truth_reaches_only_the_evaluator(tmp_path: Path, launch):
     """Under obs, learned and gated, nothing from <ns>/truth/... reaches any module but the
     mission's evaluator; under an oracle condition the gate gets the reference too.
 
@@ -180,26 +154,18 @@ def test_ground_truth_reaches_only_the_evaluator(tmp_path: Path):
         port = free_loopback_port()
         out = tmp_path / condition
         spied: list[str] = []
-        mission = subprocess.Popen(
-            [*ROVERGATE, "run", "--condition", condition, "--steps", "2", "--no-progress",
-             "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        mission = launch("run", "--condition", condition, "--steps", "2", "--out", str(out),
+                         "--listen", f"tcp/127.0.0.1:{port}")
+        mission.wait_for_line(r"started sim \(pid")  # the mission's session listens
         conf = zenoh.Config()
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-        session = None
-        for _ in range(100):
-            try:
-                session = zenoh.open(conf)
-                break
-            except zenoh.ZError:
-                time.sleep(0.2)
-        assert session is not None, "could not connect to the mission"
+        session = zenoh.open(conf)
         sub = session.declare_subscriber("rover/truth/**", spied.append)
-        _, err = mission.communicate(timeout=240)
+        code = mission.finish()
         sub.undeclare()
         session.close()
-        assert mission.returncode == 0, err[-3000:]
+        assert code == 0, mission.text[-3000:]
         assert [str(s.key_expr) for s in spied] == [], condition
         log = (out / "logs" / "sim.log").read_text()
         served[condition] = sorted(line.split("served ")[1] for line in log.splitlines()

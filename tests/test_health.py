@@ -5,21 +5,14 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
-import zenoh
+import pytest
+from conftest import StatusWatcher, run_cli
 
 from mission.journal import Journal
-from rovergate.messages import decode
-from rovergate.session import SessionConfig, free_loopback_port, zenoh_config
-
-ROVERGATE = [sys.executable, "-m", "mission.cli"]
+from rovergate.session import free_loopback_port
 
 
 def test_journal_keeps_every_step_of_replay_topics_and_the_last_of_bulky_ones():
@@ -34,71 +27,31 @@ def test_journal_keeps_every_step_of_replay_topics_and_the_last_of_bulky_ones():
     assert list(j.range("depth", 7, 9)) == []
 
 
-def _status_watcher(port: int, steps: list[int], stop: threading.Event) -> threading.Thread:
-    def run() -> None:
-        cfg = SessionConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",))
-        deadline = time.monotonic() + 60
-        session = None
-        while session is None and not stop.is_set():
-            try:
-                session = zenoh.open(zenoh_config(cfg))
-            except zenoh.ZError:
-                assert time.monotonic() < deadline
-                time.sleep(0.2)
-        if session is None:
-            return
-        sub = session.declare_subscriber(
-            "rover/mission/status",
-            lambda s: steps.append(decode("status", s.payload.to_bytes())[0]))
-        stop.wait()
-        sub.undeclare()
-        session.close()
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return thread
-
-
-def test_killed_modules_restart_and_the_mission_ends_as_if_nothing_happened(tmp_path: Path):
+@pytest.mark.e2e
+def test_killed_modules_restart_and_the_mission_ends_as_if_nothing_happened(tmp_path: Path,
+                                                                          launch):
     """Each module is SIGKILLed once at a different step; the mission completes, and its
     per-step coverage and gate counts equal an uninterrupted in-process run's exactly."""
     steps, condition = 12, "gated"
     port = free_loopback_port()
-    mission = subprocess.Popen(
-        [*ROVERGATE, "run", "--steps", str(steps), "--condition", condition, "--no-progress",
-         "--out", str(tmp_path / "p"), "--listen", f"tcp/127.0.0.1:{port}"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(mission.stderr), daemon=True)
-    reader.start()
-    seen: list[int] = []
-    stop = threading.Event()
-    watcher = _status_watcher(port, seen, stop)
+    mission = launch("run", "--steps", str(steps), "--condition", condition,
+                     "--out", str(tmp_path / "p"), "--listen", f"tcp/127.0.0.1:{port}")
+    # The mission's session listens before it starts any module.
+    mission.wait_for_line(r"started sim \(pid")
+    watcher = StatusWatcher(port)
     kills = {2: "sim", 4: "planner", 6: "mapper", 8: "gate"}
     killed: list[str] = []
     try:
-        deadline = time.monotonic() + 300
-        while kills and mission.poll() is None and time.monotonic() < deadline:
-            step = max(seen, default=-1)
-            if step in kills:
-                name = kills.pop(step)
-                # The most recent "started <name> (pid N)" line is the live process.
-                pids = [int(m.group(1)) for line in list(lines)
-                        if (m := re.search(rf"started {name} \(pid (\d+)\)", line))]
-                os.kill(pids[-1], signal.SIGKILL)
-                killed.append(name)
-            time.sleep(0.02)
-        assert mission.wait(300) == 0, "".join(lines)[-4000:]
+        for step, name in kills.items():
+            watcher.wait_step(step)
+            os.kill(mission.pid(name), signal.SIGKILL)
+            killed.append(name)
+        assert mission.finish(300) == 0, mission.text[-4000:]
     finally:
-        stop.set()
-        if mission.poll() is None:
-            mission.kill()
-        watcher.join(10)
-        reader.join(10)
-    assert killed == ["sim", "planner", "mapper", "gate"], (killed, seen)
-    inproc = subprocess.run(
-        [*ROVERGATE, "run", "--steps", str(steps), "--condition", condition, "--in-process",
-         "--no-progress", "--out", str(tmp_path / "i")], capture_output=True, text=True,
-        timeout=300)
+        watcher.close()
+    assert killed == ["sim", "planner", "mapper", "gate"], (killed, watcher.steps)
+    inproc = run_cli("run", "--steps", str(steps), "--condition", condition, "--in-process",
+                     "--out", str(tmp_path / "i"), timeout=300)
     assert inproc.returncode == 0, inproc.stderr[-3000:]
     p = json.loads((tmp_path / "p" / "metrics.json").read_text())
     i = json.loads((tmp_path / "i" / "metrics.json").read_text())

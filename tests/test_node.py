@@ -4,37 +4,61 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 
+from conftest import Waiter
+
+from rovergate.config import SessionConfig
+from rovergate.graph import Input, Module
 from rovergate.messages import encode
-from rovergate.node import Input, ModuleNode, cdr_encoding
-from rovergate.session import SessionConfig
+from rovergate.module import StatelessLogic, StepOutput
+from rovergate.node import ModuleNode, cdr_encoding
 from rovergate.types import MissionStatus, Pose
+
+#: A module of the test's own: base poses in, the tick of the step before as a lagged input.
+SPEC = Module("probe", "a test module", inputs={"base": Input("base_pose"),
+                                                "tick": Input("status", lag=1)},
+              outputs=("path",))
+
+
+class Probe(StatelessLogic):
+    spec = SPEC
+
+    def __init__(self, waiter: Waiter) -> None:
+        self.handled: list[tuple[int, bool]] = []
+        self.waiter = waiter
+
+    def handle(self, step, inputs):
+        with self.waiter.cv:
+            self.handled.append((step, inputs["tick"] is not None))
+            self.waiter.cv.notify_all()
+        return StepOutput()
+
+
+def _wait_matched(session, key: str) -> None:
+    """Wait until a subscriber of ``key`` is known to ``session`` (a matching listener)."""
+    matched = threading.Event()
+    publisher = session.declare_publisher(key)
+    listener = publisher.declare_matching_listener(
+        lambda status: matched.set() if status.matching else None)
+    if publisher.matching_status.matching:
+        matched.set()
+    assert matched.wait(30), f"no subscriber matched {key} within 30 s"
+    listener.undeclare()
+    publisher.undeclare()
 
 
 def test_node_drops_malformed_messages_and_runs_on(loopback_pair):
     endpoint, hub, _ = loopback_pair
-    node = ModuleNode("planner", SessionConfig(connect=(endpoint,)),
-                      inputs={"base": Input("base_pose"), "tick": Input("status", lag=1)},
-                      outputs=["path"], log=logging.getLogger("test"))
-    handled: list[tuple[int, bool]] = []
+    node = ModuleNode(SPEC, SessionConfig(connect=(endpoint,)), logging.getLogger("test"))
+    waiter = Waiter()
+    probe = Probe(waiter)
     result: list[str] = []
-
-    def handler(step, inputs):
-        handled.append((step, inputs["tick"] is not None))
-        return {}
-
-    thread = threading.Thread(target=lambda: result.append(node.spin(handler, 30.0)))
+    thread = threading.Thread(target=lambda: result.append(node.spin(probe, 30.0)))
     thread.start()
     try:
         key, enc = "rover/sensor/base_pose", cdr_encoding("base_pose")
         for k in (key, "rover/mission/status"):  # wait until the node's subscriptions are known
-            publisher = hub.declare_publisher(k)
-            deadline = time.monotonic() + 30
-            while not publisher.matching_status.matching:
-                assert time.monotonic() < deadline, f"no subscriber matched {k}"
-                time.sleep(0.01)
-            publisher.undeclare()
+            _wait_matched(hub, k)
         hub.put(key, b"\x00\x01\x00\x00not a pose", encoding=enc)                    # garbage
         hub.put(key, encode("base_pose", (0, Pose.from_xyz_yaw(0, 0, 0, 0))))         # no schema
         hub.put(key, encode("status", MissionStatus(0, 5, "running", "obs", 0, 0)),
@@ -45,9 +69,7 @@ def test_node_drops_malformed_messages_and_runs_on(loopback_pair):
             hub.put("rover/mission/status",
                     encode("status", MissionStatus(step, 5, "running", "obs", 0.0, 0)),
                     encoding=cdr_encoding("status"))
-        deadline = time.monotonic() + 30
-        while len(handled) < 3 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        waiter.wait_for(lambda: len(probe.handled) >= 3, 30, "three handled steps")
         hub.put("rover/mission/status", encode("status", MissionStatus(3, 5, "done", "obs", 0, 0)),
                 encoding=cdr_encoding("status"))
         thread.join(30)
@@ -56,5 +78,4 @@ def test_node_drops_malformed_messages_and_runs_on(loopback_pair):
     assert result == ["done"]
     assert node.dropped == 3
     # Step 0 needs no tick (lag 1); steps 1 and 2 need the ticks of steps 0 and 1.
-    assert handled == [(0, False), (1, True), (2, True)]
-
+    assert probe.handled == [(0, False), (1, True), (2, True)]

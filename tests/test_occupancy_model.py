@@ -26,6 +26,7 @@ from mapper.model import (
     shipped_checkpoint,
 )
 from mapper.training import TrainConfig, gather_world, make_batch, masked_loss, train
+from rovergate.errors import CheckpointError
 from rovergate.geometry import R_BODY_OPTICAL
 from rovergate.types import CameraIntrinsics
 
@@ -125,22 +126,31 @@ def test_checkpoint_loads_offline_from_the_installed_package(tmp_path: Path):
 
 
 def test_missing_or_corrupt_checkpoint_is_one_line_saying_how_to_rebuild(tmp_path: Path):
-    with pytest.raises(SystemExit, match=r"missing; rebuild it with `rovergate train`"):
+    with pytest.raises(CheckpointError, match=r"missing; rebuild it with `rovergate train`"):
         load_checkpoint(tmp_path / "nope.pt")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint")
-    with pytest.raises(SystemExit, match=r"corrupt .*rebuild it with `rovergate train`"):
+    with pytest.raises(CheckpointError, match=r"corrupt .*rebuild it with `rovergate train`"):
         load_checkpoint(junk)
     cut = tmp_path / "cut.pt"
     cut.write_bytes(shipped_checkpoint().read_bytes()[:5000])
-    with pytest.raises(SystemExit, match=r"corrupt") as e:
+    with pytest.raises(CheckpointError, match=r"corrupt") as e:
         load_checkpoint(cut)
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.e2e
+def test_a_corrupt_checkpoint_stops_the_command_line_in_one_line(tmp_path: Path):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
     r = subprocess.run([sys.executable, "-m", "mission.cli", "run", "--condition", "learned",
                         "--mapper.checkpoint", str(junk), "--out", str(tmp_path / "r")],
                        capture_output=True, text=True, timeout=120)
-    assert r.returncode != 0
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        line for line in r.stderr.strip().splitlines() if "Traceback" not in line]
     assert r.stderr.strip().splitlines()[-1].startswith("error: the occupancy model checkpoint")
+    assert not (tmp_path / "r" / "logs").exists(), "modules were started"
 
 
 def test_a_short_training_run_lowers_the_loss():

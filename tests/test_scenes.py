@@ -13,6 +13,7 @@ from rover_sim.catalog import SCENES, SUITE, load_scene
 from rover_sim.flyer import FlyerBody
 from rover_sim.rover import RoverBody
 from rovergate.config import FlyerConfig, RoverConfig, SceneConfig
+from rovergate.errors import ConfigError
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "scenes.md"
 
@@ -104,19 +105,19 @@ def test_a_mesh_file_is_a_scene(tmp_path, suffix):
 def test_a_bad_mesh_file_gets_one_line_saying_why(tmp_path):
     bad = tmp_path / "broken.ply"
     bad.write_text("this is not a mesh\n")
-    with pytest.raises(SystemExit, match=r"broken\.ply"):
+    with pytest.raises(ConfigError, match=r"broken\.ply"):
         load_scene(SceneConfig(name=str(bad)))
-    with pytest.raises(SystemExit, match="does not exist"):
+    with pytest.raises(ConfigError, match="does not exist"):
         load_scene(SceneConfig(name=str(tmp_path / "missing.obj")))
-    with pytest.raises(SystemExit, match="up-axis"):
+    with pytest.raises(ConfigError, match="up-axis"):
         load_scene(SceneConfig(name=str(bad), up_axis="w"))
-    with pytest.raises(SystemExit, match="unknown scene"):
+    with pytest.raises(ConfigError, match="unknown scene"):
         load_scene("atlantis")
 
 
 def test_rovergate_scenes_lists_and_draws(tmp_path, capsys):
-    from rover_sim.overview import main
-    assert main(["crater", "--render", str(tmp_path)]) == 0
+    from mission.cli import COMMANDS
+    assert COMMANDS["scenes"].main(["crater", "--render", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "crater" in out and "d_scene" in out and "a=(" in out
     assert (tmp_path / "crater.png").stat().st_size > 10_000

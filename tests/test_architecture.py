@@ -1,0 +1,110 @@
+"""The shape of the system: one graph declaration that everything derives from, logic that
+loads without a transport, settings refused before anything starts."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mission.journal import KEEP_ALL, KEEP_LAST
+from mission.run import check_runnable
+from mission.transport import InProcessTransport
+from rovergate import graph
+from rovergate.config import MissionConfig
+from rovergate.errors import CheckpointError, ConfigError, UnknownNameError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_graph_is_consistent_and_everything_derives_from_it():
+    graph.check_graph()
+    assert graph.LAUNCHED == ("sim", "mapper", "gate", "planner")
+    assert graph.stage_module() == {"execute": "sim", "render": "sim", "integrate": "mapper",
+                                    "gate": "gate", "plan": "planner"}
+    # The journal keeps every step of what modules replay, the last steps of the rest.
+    assert {"status", "path", "depth", "camera_info", "pose", "base_pose"} == KEEP_ALL
+    assert {"surface", "predicted", "planner_map"} == KEEP_LAST
+    assert {m.name: m.progress for m in graph.MODULES.values() if m.launched} == {
+        "sim": "base_pose", "mapper": "predicted", "gate": "planner_map", "planner": "path"}
+    # Every topic a module reads has exactly one producer in the graph.
+    for m in graph.MODULES.values():
+        for i in m.inputs.values():
+            assert graph.producer(i.topic) is not None
+
+
+def test_a_broken_declaration_is_refused(monkeypatch):
+    bad = dataclasses.replace(graph.MODULES["planner"],
+                              inputs={"map": graph.Input("no_such_topic")})
+    monkeypatch.setitem(graph.MODULES, "planner", bad)
+    with pytest.raises(ValueError, match="unknown topic no_such_topic"):
+        graph.check_graph()
+
+
+def test_readme_topic_table_is_the_generated_one():
+    readme = (ROOT / "README.md").read_text()
+    m = re.search(r"<!-- topics:[^\n]*-->\n(.*?)\n<!-- /topics -->", readme, re.S)
+    assert m, "README.md lost its topic table markers"
+    assert m.group(1) == graph.topic_table(), \
+        "README topic table is stale: paste `python -m rovergate.graph` between the markers"
+
+
+def test_module_logic_loads_without_zenoh():
+    code = ("import gate.gate, gate.node, mapper.mapper, mapper.node, planner.planner, "
+            "planner.node, rover_sim.sim, rover_sim.node, mission.coverage, mission.metrics, "
+            "mission.loop, mission.transport, mission.supervisor, rovergate.config, sys; "
+            "assert 'zenoh' not in sys.modules, 'zenoh was imported'")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
+def _cfg(**kw) -> MissionConfig:
+    return dataclasses.replace(MissionConfig(progress=False), **kw)
+
+
+@pytest.mark.parametrize(("change", "error", "match"), [
+    ({"start": "z"}, UnknownNameError, "has no start 'z'; choose one of: a, b, c, d, e"),
+    ({"condition": "psychic"}, UnknownNameError, "unknown condition 'psychic'"),
+    ({"platform": "boat"}, UnknownNameError, "unknown platform 'boat'"),
+    ({"steps": 0}, ConfigError, "--steps must be at least 1"),
+    ({"max_restarts": -1}, ConfigError, "--max-restarts must be at least 0"),
+    ({"step_timeout_s": 0.0}, ConfigError, "--step-timeout-s must be positive"),
+])
+def test_bad_settings_are_refused_before_anything_starts(change, error, match):
+    with pytest.raises(error, match=match):
+        check_runnable(_cfg(**change))
+
+
+def test_bad_planner_and_checkpoint_are_refused_before_anything_starts(tmp_path):
+    cfg = _cfg()
+    with pytest.raises(UnknownNameError, match="unknown planner 'astar'"):
+        check_runnable(dataclasses.replace(cfg, planner=dataclasses.replace(
+            cfg.planner, name="astar")))
+    missing = dataclasses.replace(cfg.mapper, checkpoint=str(tmp_path / "none.pt"))
+    with pytest.raises(CheckpointError, match="missing"):
+        check_runnable(dataclasses.replace(cfg, condition="learned", mapper=missing))
+
+
+def test_in_process_transport_routes_by_the_graph():
+    """One tick runs the modules whose inputs are complete, in the graph's order: after the
+    tick of step 0 the mission has S_0 and the base pose of step 0, and nothing of step 1."""
+    from rover_sim.catalog import resolve_scene
+    from rovergate.types import MissionStatus
+    cfg = _cfg(steps=2)
+    resolve_scene(cfg.scene)
+    t = InProcessTransport(cfg)
+    t.start()
+    try:
+        t.tick(MissionStatus(0, 2, "running", "obs", 0.0, 0))
+        assert len(t.receive("surface", 0)) > 100
+        assert t.receive("base", 0).position.shape == (3,)
+        with pytest.raises(Exception, match="no path of step 0"):
+            t.receive("path", 0) and t.receive("path", 0)  # the first takes it; none is left
+        assert {x.module for x in t.timings()} == {"render", "integrate", "gate", "plan"}
+    finally:
+        t.finish(MissionStatus(0, 2, "done", "obs", 0.0, 0), failed=False)
