@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -12,9 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from mission.bridge import LINK_FILE
 from mission.contact import ContactPlan, ContactPlanError
 from mission.downlink import DownlinkQueue
-from mission.ground import gaps, parse_command
+from mission.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
 from mission.operations import CommandError, apply_settings
 from rovergate.config import ContactConfig, MissionConfig
 
@@ -152,6 +155,85 @@ def test_ground_refuses_malformed_commands(line):
         parse_command(line, 1)
 
 
+def _link_file(mission: Path, **fields) -> None:
+    link = {"endpoints": ["tcp/127.0.0.1:40001"], "ground_namespace": "earth",
+            "rover_namespace": "rover", "pid": os.getpid(), "host": socket.gethostname(),
+            "started_at": "2025-01-01T00:00:00+00:00", **fields}
+    mission.mkdir(exist_ok=True)
+    (mission / LINK_FILE).write_text(json.dumps(link))
+
+
+def test_ground_finds_the_link_in_the_missions_directory(tmp_path: Path):
+    assert GroundConfig().mission == MissionConfig().out  # `rovergate run`'s default --out
+    _link_file(tmp_path)
+    cfg = resolve_link(GroundConfig(mission=tmp_path))
+    assert (cfg.connect, cfg.namespace) == (("tcp/127.0.0.1:40001",), "earth")
+    given = resolve_link(GroundConfig(mission=tmp_path, connect=("tcp/10.0.0.2:7448",)))
+    assert (given.connect, given.namespace) == (("tcp/10.0.0.2:7448",), "ground")  # it wins
+    assert resolve_link(GroundConfig(mission=tmp_path, namespace="mars")).namespace == "mars"
+
+
+def _dead_pid() -> int:
+    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, timeout=60)
+    return int(proc.stdout)
+
+
+@pytest.mark.parametrize("content, why", [
+    (None, "does not exist"),
+    ("{not json", "cannot be read as JSON"),
+    ('{"endpoints": [], "ground_namespace": "ground"}', "is not a mission's ground link file"),
+    ('["tcp/127.0.0.1:40001"]', "is not a mission's ground link file"),
+    ("dead", "no longer running"),
+])
+def test_ground_without_a_usable_link_file_says_so_in_one_line(tmp_path: Path, content, why):
+    if content == "dead":
+        _link_file(tmp_path, pid=_dead_pid())
+    elif content is not None:
+        (tmp_path / LINK_FILE).write_text(content)
+    with pytest.raises(LinkFileError) as e:
+        resolve_link(GroundConfig(mission=tmp_path))
+    message = str(e.value)
+    assert message.startswith(str(tmp_path / LINK_FILE)) and why in message
+    assert message.endswith("start a mission first, or pass --mission OUT or --connect "
+                            "tcp/HOST:PORT") and "\n" not in message
+
+
+@pytest.mark.parametrize("listen", [(), ("tcp/127.0.0.1:0",)])
+def test_bridge_takes_a_free_port_and_says_where_while_the_link_is_up(tmp_path: Path, listen):
+    from mission.bridge import GroundBridge
+    bridge = GroundBridge(ContactConfig(ground_listen=listen), tmp_path)
+    try:
+        link = json.loads((tmp_path / LINK_FILE).read_text())
+        (endpoint,) = link["endpoints"]
+        assert re.fullmatch(r"tcp/127\.0\.0\.1:\d+", endpoint) and not endpoint.endswith(":0")
+        assert (link["pid"], link["ground_namespace"], link["rover_namespace"]) == (
+            os.getpid(), "ground", "rover")
+        assert tuple(link["endpoints"]) == bridge.endpoints
+        # Its port is taken now: a mission asking for that very endpoint is refused in a line.
+        with pytest.raises(SystemExit, match=r"^error: the ground endpoint .* could not be "
+                                             r"opened .*leave --contact.ground-listen out"):
+            GroundBridge(ContactConfig(ground_listen=(endpoint,)), tmp_path / "other")
+    finally:
+        bridge.close()
+    assert not (tmp_path / LINK_FILE).exists()
+
+
+def test_bridge_leaves_another_missions_link_file_alone(tmp_path: Path):
+    from mission.bridge import GroundBridge
+    bridge = GroundBridge(ContactConfig(), tmp_path)
+    _link_file(tmp_path, pid=os.getpid() + 1)  # another mission, same --out, since
+    bridge.close()
+    assert json.loads((tmp_path / LINK_FILE).read_text())["pid"] == os.getpid() + 1
+
+
+def test_ground_command_without_a_mission_is_one_line(tmp_path: Path):
+    r = subprocess.run([*ROVERGATE, "ground", "--mission", str(tmp_path / "none"), "--out",
+                        str(tmp_path / "g")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1, r.stderr
+    assert r.stderr.startswith(f"error: {tmp_path / 'none' / LINK_FILE} does not exist")
+
+
 def test_settings_change_in_flight_only_where_allowed():
     cfg, modules = apply_settings(MissionConfig(), ["gate.k=3", "gate.epsilon_frac=0.05"])
     assert (cfg.gate.k, cfg.gate.epsilon_frac, modules) == (3, 0.05, {"gate"})
@@ -174,24 +256,37 @@ class Mission:
 
     def __init__(self, tmp_path: Path, *flags: str, steps: int) -> None:
         from rovergate.session import free_loopback_port
-        self.port, ground_port = free_loopback_port(), free_loopback_port()
+        self.port = free_loopback_port()
         self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
+        # The ground link takes a free port of its own and says which in OUT/ground.json.
         self.proc = subprocess.Popen(
             [*ROVERGATE, "run", "--steps", str(steps), "--no-progress", "--out", str(self.out),
-             "--listen", f"tcp/127.0.0.1:{self.port}",
-             "--contact.ground-listen", f"tcp/127.0.0.1:{ground_port}", *flags],
+             "--listen", f"tcp/127.0.0.1:{self.port}", *flags],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.ground = subprocess.Popen(
-            [*ROVERGATE, "ground", "--connect", f"tcp/127.0.0.1:{ground_port}", "--out",
-             str(self.ground_out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
-        threading.Thread(target=lambda: self.lines.extend(self.proc.stderr),
-                         daemon=True).start()
+        self.linked = threading.Event()
+        threading.Thread(target=self._read_log, daemon=True).start()
+        assert self.linked.wait(120) and self.proc.poll() is None, \
+            "the mission did not open its link to the ground in 120 s:\n" + \
+            "".join(self.lines)[-3000:]
+        link = json.loads((self.out / LINK_FILE).read_text())
+        assert link["pid"] == self.proc.pid and link["ground_namespace"] == "ground" and \
+            link["rover_namespace"] == "rover", link
+        assert f"link to the ground on {link['endpoints'][0]} " in "".join(self.lines)
+        self.ground = subprocess.Popen(
+            [*ROVERGATE, "ground", "--mission", str(self.out), "--out", str(self.ground_out)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         from test_health import _status_watcher
         self.steps: list[int] = []
         self.stop = threading.Event()
         self.watcher = _status_watcher(self.port, self.steps, self.stop)
+
+    def _read_log(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.append(line)
+            if "link to the ground on" in line:  # logged once OUT/ground.json is written
+                self.linked.set()
+        self.linked.set()  # the mission ended: whoever waits sees it did
 
     def wait_step(self, step: int, timeout_s: float = 240) -> int:
         deadline = time.monotonic() + timeout_s
@@ -215,6 +310,7 @@ class Mission:
                 if p.poll() is None:
                     p.kill()
         assert self.ground.returncode == 0, ground_out[-3000:]
+        assert not (self.out / LINK_FILE).exists()  # the link is down: its file has gone
         metrics = json.loads((self.out / "metrics.json").read_text())
         rows = [json.loads(line) for line in
                 (self.ground_out / "received.jsonl").read_text().splitlines()]
@@ -317,3 +413,25 @@ def test_condition_change_pause_resume_and_abort_from_the_ground(tmp_path: Path)
     assert not any(predicted[:step]) and any(predicted[step:])  # the model runs from then on
     assert held == paused["step"]  # nothing moved while paused
     assert [r["state"] for r in rows if r["kind"] == "status"][-1] == "aborted"
+
+
+@pytest.mark.e2e
+def test_two_missions_with_default_links_run_side_by_side(tmp_path: Path):
+    """No fixed port: two missions started together with the default contact flags each open
+    their link to the ground on a port of their own, and both end cleanly."""
+    procs = [subprocess.Popen([*ROVERGATE, "run", "--steps", "2", "--no-progress", "--out",
+                               str(tmp_path / name)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+             for name in ("one", "two")]
+    try:
+        logs = [p.communicate(timeout=300)[1] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for p, log in zip(procs, logs, strict=True):
+        assert p.returncode == 0, log[-3000:]
+    endpoints = [re.search(r"link to the ground on (tcp/127\.0\.0\.1:\d+) ", log).group(1)
+                 for log in logs]
+    assert endpoints[0] != endpoints[1]
+    assert not any((tmp_path / name / LINK_FILE).exists() for name in ("one", "two"))
