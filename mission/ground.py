@@ -8,7 +8,8 @@ acknowledges each by sequence number, and sends commands up. What it received is
 ``OUT/map_latest.npy``; both survive a restart of the station, which then goes on where it
 stopped.
 
-Commands (``--send`` at start, or typed on standard input, one per line)::
+Commands (``--send`` at start, repeated or with several quoted commands, or typed on standard
+input, one per line)::
 
     pause | resume | abort
     set gate.k=3 [planner.n_candidates=16 ...]
@@ -33,6 +34,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import tyro
 import zenoh
 
 from mission.bridge import LINK_FILE
@@ -70,14 +72,20 @@ class GroundConfig:
     the one in the mission's ground.json, or `ground` with --connect."""
     out: Path = Path("runs/ground")
     """Where the station records what came down (received.jsonl, map_latest.npy)."""
-    send: tuple[str, ...] = ()
-    """Commands to send at start, each one quoted: --send "set gate.k=3" pause."""
+    send: tyro.conf.UseAppendAction[tuple[tuple[str, ...], ...]] = ()
+    """Commands to send at start, each one quoted, in order: --send pause --send resume, or
+    --send "set gate.k=3" pause."""
     stdin: bool = True
     """Read further commands from standard input, one per line."""
     until_mission_ends: bool = True
     """Exit once the mission manager has gone (after it drained its telemetry)."""
     timeout_s: float = 0.0
     """Exit after this many seconds (0: no limit)."""
+
+    @property
+    def commands(self) -> list[str]:
+        """The --send commands in the order given (each --send may carry several)."""
+        return [line for group in self.send for line in group]
 
 
 class LinkFileError(ValueError):
@@ -292,7 +300,7 @@ def main(cfg: GroundConfig) -> int:
     log.info("ground station on %s (from %s, namespace %s); recording to %s",
              ", ".join(cfg.connect), source, cfg.namespace, cfg.out)
     try:
-        for line in cfg.send:
+        for line in cfg.commands:
             station.send(line)
         if cfg.stdin and not sys.stdin.closed:
             def read_stdin() -> None:

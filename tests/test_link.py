@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+import tyro
 
 from mission.bridge import LINK_FILE
 from mission.contact import ContactPlan, ContactPlanError
@@ -153,6 +154,17 @@ def test_ground_parses_commands(line, verb, args):
 def test_ground_refuses_malformed_commands(line):
     with pytest.raises(ValueError):
         parse_command(line, 1)
+
+
+@pytest.mark.parametrize("args, commands", [
+    (["--send", "pause", "--send", "resume"], ["pause", "resume"]),  # not only the last
+    (["--send", "set gate.k=3", "pause"], ["set gate.k=3", "pause"]),
+    (["--send", "set gate.k=3", "pause", "--send", "resume"], ["set gate.k=3", "pause",
+                                                                 "resume"]),
+    ([], []),
+])
+def test_ground_sends_every_command_given(args, commands):
+    assert tyro.cli(GroundConfig, args=args).commands == commands
 
 
 def _link_file(mission: Path, **fields) -> None:
