@@ -143,6 +143,20 @@ def test_missing_or_corrupt_checkpoint_is_one_line_saying_how_to_rebuild(tmp_pat
     assert r.stderr.strip().splitlines()[-1].startswith("error: the occupancy model checkpoint")
 
 
+def test_training_writes_outside_the_package_unless_told_and_missions_load_the_shipped():
+    """A trial `rovergate train` must not replace the shipped model; missions still use it."""
+    import tyro
+
+    from mapper.mapper import mission_checkpoint
+    from rovergate.config import MissionConfig
+    out = tyro.cli(TrainConfig, args=[]).out
+    assert out == TrainConfig().out == Path("runs/train/occupancy.pt")
+    package = shipped_checkpoint().resolve().parent.parent
+    assert not out.resolve().is_relative_to(package)
+    assert not out.with_suffix(".json").resolve().is_relative_to(package)
+    assert mission_checkpoint(MissionConfig(condition="learned")).path == shipped_checkpoint()
+
+
 def test_a_short_training_run_lowers_the_loss():
     cfg = TrainConfig(walk_steps=5, snapshot_every=2, iterations=40, batch=2, lr=4e-3,
                       crop=(32, 32, 32), threads=1, label_samples=100_000)
