@@ -130,7 +130,7 @@ class OccupancyNet(nn.Module):
 # ----------------------------------------------------------------------------- checkpoint
 
 CHECKPOINT_NAME = "occupancy.pt"
-REBUILD_HINT = "rebuild it with `rovergate train` (about 35 minutes on a 2-core CPU)"
+REBUILD_HINT = "rebuild it with `rovergate train --out {path}` (about 35 minutes on a 2-core CPU)"
 
 
 def shipped_checkpoint() -> Path:
@@ -163,7 +163,7 @@ def load_checkpoint(path: Path | None = None) -> Checkpoint:
     path = Path(path) if path is not None else shipped_checkpoint()
     if not path.is_file():
         raise SystemExit(f"error: the occupancy model checkpoint {path} is missing; "
-                         f"{REBUILD_HINT}")
+                         f"{REBUILD_HINT.format(path=path)}")
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
         window = WindowSpec(**{k: tuple(v) if isinstance(v, list) else v
@@ -173,7 +173,7 @@ def load_checkpoint(path: Path | None = None) -> Checkpoint:
     except Exception as e:  # a truncated zip, a pickle error, missing or misshaped tensors
         raise SystemExit(f"error: the occupancy model checkpoint {path} is corrupt "
                          f"({type(e).__name__}: {str(e).splitlines()[0][:120] if str(e) else ''}"
-                         f"); {REBUILD_HINT}") from None
+                         f"); {REBUILD_HINT.format(path=path)}") from None
     model.eval()
     return Checkpoint(model, window, dict(blob.get("meta", {})), path)
 
