@@ -131,8 +131,12 @@ def main(argv: list[str] | None = None) -> None:
                                             prog="rovergate eval-model",
                                             description=EvalModelConfig.__doc__)))
     if argv and argv[0] == "study":
-        from mission.study import StudyConfig
+        from mission.study import StudyConfig, StudyFlagError, refuse_owned_mission_flags
         from mission.study import main as study_main
+        try:
+            refuse_owned_mission_flags(argv[1:])
+        except StudyFlagError as exc:
+            raise SystemExit(f"error: {exc}") from None
         raise SystemExit(study_main(tyro.cli(StudyConfig, args=argv[1:],
                                              prog="rovergate study",
                                              description=StudyConfig.__doc__)))

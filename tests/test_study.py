@@ -4,6 +4,7 @@ through the command line, and resumption after the study is killed mid-way."""
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -15,7 +16,16 @@ import numpy as np
 import pytest
 
 from mission.metrics import auc, final_coverage, s70, suppression_audit
+from mission.study import (
+    OWNED_MISSION_FLAGS,
+    RunSpec,
+    StudyConfig,
+    StudyFlagError,
+    mission_config,
+    refuse_owned_mission_flags,
+)
 from mission.tables import bootstrap_ci, table1, table2
+from rovergate.config import MissionConfig, SceneConfig, to_dict
 
 ROVERGATE = [sys.executable, "-m", "rovergate.cli"]
 
@@ -182,3 +192,76 @@ def test_a_terminated_study_stops_its_workers(tmp_path: Path):
     for pid in workers:
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--mission.platform", "rover"], "--mission.platform is set by the study for every run; "
+                                      "use --platform rover"),
+    (["--steps", "5", "--mission.steps=50"], "--mission.steps is set by the study for every "
+                                             "run; use --steps 50"),
+    (["--mission.scene.name", "crater"], "--mission.scene.name is set by the study for every "
+                                         "run; use --scenes crater"),
+    (["--mission.no-progress"], "--mission.no-progress is set by the study for every run; "
+                                "use --progress or --no-progress (the study's progress bar)"),
+    (["--mission.in_process"], "--mission.in_process is set by the study for every run; "
+                               "every run is in process; leave it out"),
+    (["--mission.seed", "3"], "--mission.seed is set by the study for every run; repetition r "
+                              "runs with seed r; use --reps N for more seeds"),
+    (["--mission.out"], "--mission.out is set by the study for every run; use --out VALUE "
+                        "(each run goes to OUT/runs/<id>)"),
+])
+def test_study_refuses_mission_flags_it_sets_itself(argv, message):
+    with pytest.raises(StudyFlagError) as e:
+        refuse_owned_mission_flags(argv)
+    assert str(e.value) == message
+
+
+def test_study_lets_every_other_mission_flag_through():
+    refuse_owned_mission_flags(["--platform", "rover", "--steps", "5", "--out", "runs/x",
+                                "--mission.sensing.noise-frac", "0.01", "--mission.gate.k=3",
+                                "--mission.scene.up-axis", "y", "--mission.planner.name",
+                                "beam", "--no-progress"])
+
+
+def test_the_refused_flags_are_exactly_what_the_study_sets():
+    """Set every field to a value the study does not use: what it changed is what it owns."""
+    own = MissionConfig(scene=SceneConfig(name="mine.ply", d_scene_m=7.0,
+                                          bounds_m=(1, 2, 3, 4, 5, 6)),
+                        platform="other", start="q", steps=999, seed=99, condition="truth",
+                        out=Path("elsewhere"), in_process=False, progress=True)
+    made = mission_config(StudyConfig(mission=own), RunSpec("crater", "b", "obs", 0),
+                          Path("runs/x"))
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            key = prefix + k.replace("_", "-")
+            out.update(flat(v, key + ".") if isinstance(v, dict) else {key: v})
+        return out
+    before, after = flat(to_dict(own)), flat(to_dict(made))
+    changed = {k for k in before if before[k] != after[k]}
+    assert changed == set(OWNED_MISSION_FLAGS) - {"scene"}  # `scene` is --scenes' alias
+
+
+def test_a_mission_flag_of_the_study_refused_before_anything_starts(tmp_path: Path):
+    r = subprocess.run([*ROVERGATE, "study", "--mission.platform", "rover", "--mission.steps",
+                        "50", "--out", str(tmp_path / "s")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and r.stderr == ("error: --mission.platform is set by the study "
+                                              "for every run; use --platform rover\n")
+    assert not (tmp_path / "s").exists()
+
+
+def test_other_mission_flags_reach_every_run(tmp_path: Path):
+    out = tmp_path / "s"
+    r = subprocess.run([*ROVERGATE, "study", "--scenes", "arch_field", "--starts", "a",
+                        "--conditions", "learned", "--reps", "1", "--filter-reps", "1",
+                        "--steps", "2", "--workers", "1", "--bootstrap", "200",
+                        "--no-progress", "--out", str(out),
+                        "--mission.sensing.noise-frac", "0.01", "--mission.gate.k", "3"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (run,) = (out / "runs").iterdir()
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["sensing"]["noise_frac"] == 0.01 and saved["gate"]["k"] == 3
+    assert (saved["steps"], saved["platform"], saved["in_process"]) == (2, "flyer", True)
