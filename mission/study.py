@@ -270,9 +270,12 @@ def main(cfg: StudyConfig) -> int:
     sessions.append(session)
 
     def save_progress() -> None:
+        # Written whole or not at all: a study killed mid-write must still resume.
         session["wall_s"] = time.perf_counter() - t0
-        settings_path.write_text(json.dumps({"settings": settings, "sessions": sessions},
-                                            indent=1) + "\n")
+        tmp = settings_path.with_name(f".{settings_path.name}.tmp")
+        tmp.write_text(json.dumps({"settings": settings, "sessions": sessions}, indent=1)
+                       + "\n")
+        os.replace(tmp, settings_path)
 
     save_progress()
     failures: list[tuple[str, str]] = []
