@@ -131,7 +131,7 @@ class OccupancyNet(nn.Module):
 # ----------------------------------------------------------------------------- checkpoint
 
 CHECKPOINT_NAME = "occupancy.pt"
-REBUILD_HINT = "rebuild it with `rovergate train` (about 35 minutes on a 2-core CPU)"
+REBUILD_HINT = "rebuild it with `rovergate train --out {path}` (about 35 minutes on a 2-core CPU)"
 
 
 def shipped_checkpoint() -> Path:
@@ -164,7 +164,7 @@ def load_checkpoint(path: Path | None = None) -> Checkpoint:
     path = Path(path) if path is not None else shipped_checkpoint()
     if not path.is_file():
         raise CheckpointError(f"the occupancy model checkpoint {path} is missing; "
-                              f"{REBUILD_HINT}")
+                              f"{REBUILD_HINT.format(path=path)}")
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
         window = WindowSpec(**{k: tuple(v) if isinstance(v, list) else v
@@ -174,7 +174,8 @@ def load_checkpoint(path: Path | None = None) -> Checkpoint:
     except Exception as e:  # a truncated zip, a pickle error, missing or misshaped tensors
         first_line = str(e).splitlines()[0][:120] if str(e) else ""
         raise CheckpointError(f"the occupancy model checkpoint {path} is corrupt "
-                              f"({type(e).__name__}: {first_line}); {REBUILD_HINT}") from None
+                              f"({type(e).__name__}: {first_line}); "
+                              f"{REBUILD_HINT.format(path=path)}") from None
     model.eval()
     return Checkpoint(model, window, dict(blob.get("meta", {})), path)
 

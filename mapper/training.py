@@ -14,7 +14,7 @@ import json
 import logging
 import multiprocessing as mp
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +29,6 @@ from mapper.model import (
     encode,
     file_sha256,
     save_checkpoint,
-    shipped_checkpoint,
     weights_sha256,
 )
 from mapper.walks import random_sensing, walk
@@ -57,10 +56,14 @@ IGNORE = 2
 
 @dataclass
 class TrainConfig:
-    """Reproduce the shipped occupancy checkpoint (defaults), or train a variant."""
+    """Reproduce the shipped occupancy checkpoint (defaults, written to runs/train/), or train
+    a variant."""
 
-    out: Path = field(default_factory=shipped_checkpoint)
-    """Where to write the checkpoint (a JSON summary goes beside it)."""
+    out: Path = Path("runs/train/occupancy.pt")
+    """Where to write the checkpoint (a JSON summary goes beside it). Not the shipped model by
+    default, so that a trial run cannot destroy it: to replace it, pass its path explicitly
+    (--out mapper/weights/occupancy.pt in a source checkout); to use another checkpoint in a
+    mission, --mapper.checkpoint PATH."""
     worlds: int = 36
     """Training worlds, cycling through the six generators."""
     val_worlds: int = 6

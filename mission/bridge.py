@@ -2,9 +2,11 @@
 ground's.
 
 The rover's processes form one Zenoh network (the mission's session and the modules); the ground
-station joins another, which only this bridge's session listens on (``--contact.ground-listen``).
-Nothing crosses except what the bridge passes, and it passes traffic only as the contact plan
-allows (:mod:`mission.contact`):
+station joins another, which only this bridge's session listens on (``--contact.ground-listen``,
+by default a free loopback port). While the link is up, ``OUT/ground.json`` says where it
+listens (:data:`LINK_FILE`; ``rovergate ground --mission OUT`` reads it); the bridge removes the
+file when it closes. Nothing crosses except what the bridge passes, and it passes traffic only
+as the contact plan allows (:mod:`mission.contact`):
 
 - Downlink: telemetry goes into the onboard queue (:mod:`mission.downlink`) as the mission
   produces it. In each step of a window the bridge radiates items in priority order within the
@@ -20,9 +22,14 @@ while the mission is paused or drains its telemetry after the last step.
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import re
+import socket
 import threading
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +43,7 @@ from rovergate.errors import ConfigError
 from rovergate.keys import Keys
 from rovergate.messages import MessageError, encode, encode_item
 from rovergate.node import cdr_encoding, check_and_decode
-from rovergate.session import open_session
+from rovergate.session import free_loopback_port, open_session
 from rovergate.types import (
     SURFACE_DTYPE,
     CommandAck,
@@ -49,6 +56,19 @@ from rovergate.types import (
 )
 
 log = logging.getLogger("rovergate.bridge")
+
+LINK_FILE = "ground.json"
+"""In the mission's directory while the link is up: ``endpoints`` (where the ground network
+listens), ``ground_namespace``, ``rover_namespace``, ``pid`` and ``host`` of the mission
+manager, ``started_at`` (ISO 8601)."""
+
+DEFAULT_GROUND_LISTEN = "tcp/127.0.0.1:0"
+"""Where the ground network listens when --contact.ground-listen is empty: a free loopback
+port."""
+ANY_PORT = re.compile(r":0(?=$|#)")
+"""Port 0 in an endpoint (before any #-options): take a free port."""
+PORT_ATTEMPTS = 5
+"""Free ports tried for an endpoint with port 0 before giving up."""
 
 
 @dataclass
@@ -71,15 +91,18 @@ class GroundBridge:
         self.keys = Keys(cfg.ground_namespace)
         base = session_cfg or SessionConfig()
         try:
-            self.session = open_session(SessionConfig(
-                mode="peer", listen=tuple(cfg.ground_listen), namespace=cfg.ground_namespace,
-                multicast_scouting=base.multicast_scouting))
+            self.session, self.endpoints = self._open(base)
         except ConfigError:
             self.queue.close()
-            raise ConfigError(
-                f"the ground endpoint {', '.join(cfg.ground_listen)} could not be "
-                "opened (is another mission using it?); pass --contact.ground-listen with a "
-                "free port, e.g. tcp/127.0.0.1:7449, or --contact.no-enabled") from None
+            raise
+        self.link_file = out / LINK_FILE
+        try:
+            self._write_link_file(base.namespace)
+        except OSError as exc:
+            self.session.close()
+            self.queue.close()
+            raise ConfigError(f"could not write {self.link_file} ({exc}); give --out a "
+                              "directory this user can write") from None
         self._pub = self.session.declare_publisher(
             self.keys.key("downlink"), encoding=cdr_encoding("downlink"),
             congestion_control=zenoh.CongestionControl.BLOCK)
@@ -103,6 +126,60 @@ class GroundBridge:
         self.dropped_reported = self.queue.dropped
 
     # --- the ground network ---------------------------------------------------------------
+
+    def _open(self, base: SessionConfig) -> tuple[zenoh.Session, tuple[str, ...]]:
+        """The ground-side session and the endpoints it listens on, port 0 replaced by the
+        port taken."""
+        def open_on(listen: tuple[str, ...]) -> zenoh.Session:
+            return open_session(SessionConfig(
+                mode="peer", listen=listen, namespace=self.cfg.ground_namespace,
+                multicast_scouting=base.multicast_scouting))
+
+        wanted = tuple(self.cfg.ground_listen) or (DEFAULT_GROUND_LISTEN,)
+        if not any(ANY_PORT.search(e) for e in wanted):
+            try:
+                return open_on(wanted), wanted
+            except ConfigError:
+                raise ConfigError(
+                    f"the ground endpoint {', '.join(wanted)} could not be opened (is "
+                    "another mission using it?); leave --contact.ground-listen out to take a "
+                    "free port, pass another endpoint, or --contact.no-enabled") from None
+        # Zenoh binds port 0 itself, but its session API does not say which port it got (only
+        # its admin space does, which would have to be opened to the ground network). So: a
+        # port free a moment ago, and another if something took it meanwhile (a mission
+        # starting at the same moment).
+        failure = ""
+        for _ in range(PORT_ATTEMPTS):
+            listen = tuple(ANY_PORT.sub(f":{free_loopback_port()}", e) for e in wanted)
+            try:
+                return open_on(listen), listen
+            except ConfigError as exc:
+                failure = str(exc)
+        raise ConfigError(
+            f"no free port for the ground endpoint {', '.join(wanted)} in "
+            f"{PORT_ATTEMPTS} tries (last: {failure}); pass --contact.ground-listen "
+            "tcp/127.0.0.1:PORT, or --contact.no-enabled")
+
+    def _write_link_file(self, rover_namespace: str) -> None:
+        """OUT/ground.json, written whole or not at all (temp file and rename), so that a
+        ground station never reads half of it."""
+        self._link = {"endpoints": list(self.endpoints),
+                      "ground_namespace": self.cfg.ground_namespace,
+                      "rover_namespace": rover_namespace, "pid": os.getpid(),
+                      "host": socket.gethostname(),
+                      "started_at": datetime.now().astimezone().isoformat(timespec="seconds")}
+        tmp = self.link_file.with_name(f".{LINK_FILE}.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(self._link, indent=1) + "\n")
+        os.replace(tmp, self.link_file)
+
+    def _remove_link_file(self) -> None:
+        """Remove OUT/ground.json if it is still this mission's (another mission given the
+        same --out may have written its own since)."""
+        try:
+            if json.loads(self.link_file.read_text()) == self._link:
+                self.link_file.unlink()
+        except (OSError, ValueError):
+            pass
 
     def _on_ground(self, topic: str):
         def callback(sample: zenoh.Sample) -> None:
@@ -214,6 +291,8 @@ class GroundBridge:
         return len(self.queue) == 0 and not self._to_ground and not self._to_rover
 
     def close(self) -> None:
+        # The file goes first: whoever reads it from now on is told the mission has ended.
+        self._remove_link_file()
         for s in self._subs:
             s.undeclare()
         self._station_sub.undeclare()

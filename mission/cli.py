@@ -118,6 +118,12 @@ def _study():
     return StudyConfig, main
 
 
+def _refuse_owned_flags(args: list[str]) -> None:
+    """``--mission.X`` for what the study sets itself is refused, not silently ignored."""
+    from mission.study import refuse_owned_mission_flags
+    refuse_owned_mission_flags(args)
+
+
 def _ground():
     from mission.ground import GroundConfig, main
     return GroundConfig, main
@@ -136,7 +142,7 @@ COMMANDS: dict[str, Command] = {
                           _typed("eval-model", _eval_model)),
     "study": Command("the paper's controlled study: every (scene, start, condition, "
                      "repetition) in parallel workers, resumable; writes runs.csv, table1.md, "
-                     "table2.md and plots", _typed("study", _study)),
+                     "table2.md and plots", _typed("study", _study, _refuse_owned_flags)),
     "ground": Command("the ground station: shows and records the downlinked telemetry, sends "
                       "commands (pause, resume, abort, set, condition, planner) up in the "
                       "next contact window", _typed("ground", _ground)),

@@ -1,12 +1,15 @@
 """``rovergate ground``: the ground station, a process of its own on the ground network.
 
-It connects to the mission manager's ground endpoint (it may run on another machine), shows
-and records every telemetry item that comes down, acknowledges each by sequence number, and
-sends commands up. What it received is kept in ``OUT/received.jsonl`` (one line per sequence
-number, never two) and the newest map snapshot in ``OUT/map_latest.npy``; both survive a
-restart of the station, which then goes on where it stopped.
+It connects to the mission manager's ground endpoint, which it finds in the mission's
+``ground.json`` (``--mission OUT``, by default ``runs/latest``) or is given (``--connect``; it
+may run on another machine), shows and records every telemetry item that comes down,
+acknowledges each by sequence number, and sends commands up. What it received is kept in
+``OUT/received.jsonl`` (one line per sequence number, never two) and the newest map snapshot in
+``OUT/map_latest.npy``; both survive a restart of the station, which then goes on where it
+stopped.
 
-Commands (``--send`` at start, or typed on standard input, one per line)::
+Commands (``--send`` at start, repeated or with several quoted commands, or typed on standard
+input, one per line)::
 
     pause | resume | abort
     set gate.k=3 [planner.n_candidates=16 ...]
@@ -21,17 +24,22 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shlex
+import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import tyro
 import zenoh
 
+from mission.bridge import LINK_FILE
 from rovergate.config import SessionConfig
+from rovergate.errors import ConfigError
 from rovergate.keys import Keys
 from rovergate.logs import init_logging
 from rovergate.messages import MessageError, decode_item, encode
@@ -55,20 +63,76 @@ VERBS = ("pause", "resume", "abort", "set", "condition", "planner")
 class GroundConfig:
     """The ground station."""
 
-    connect: tuple[str, ...] = ("tcp/127.0.0.1:7448",)
-    """The mission manager's ground endpoints (its --contact.ground-listen)."""
-    namespace: str = "ground"
-    """Prefix of the ground network's keys (the mission's --contact.ground-namespace)."""
+    mission: Path = Path("runs/latest")
+    """The mission's directory (its --out; this default is `rovergate run`'s): connect to the
+    endpoints its ground.json names (the mission writes it while its link to the ground is
+    up)."""
+    connect: tuple[str, ...] = ()
+    """The mission manager's ground endpoints (its --contact.ground-listen), e.g.
+    tcp/ROVER:7448. Given, they win over --mission."""
+    namespace: str = ""
+    """Prefix of the ground network's keys (the mission's --contact.ground-namespace). Empty:
+    the one in the mission's ground.json, or `ground` with --connect."""
     out: Path = Path("runs/ground")
     """Where the station records what came down (received.jsonl, map_latest.npy)."""
-    send: tuple[str, ...] = ()
-    """Commands to send at start, each one quoted: --send "set gate.k=3" pause."""
+    send: tyro.conf.UseAppendAction[tuple[tuple[str, ...], ...]] = ()
+    """Commands to send at start, each one quoted, in order: --send pause --send resume, or
+    --send "set gate.k=3" pause."""
     stdin: bool = True
     """Read further commands from standard input, one per line."""
     until_mission_ends: bool = True
     """Exit once the mission manager has gone (after it drained its telemetry)."""
     timeout_s: float = 0.0
     """Exit after this many seconds (0: no limit)."""
+
+    @property
+    def commands(self) -> list[str]:
+        """The --send commands in the order given (each --send may carry several)."""
+        return [line for group in self.send for line in group]
+
+
+class LinkFileError(ConfigError):
+    """No usable ground.json where the station looked (the message says how to go on)."""
+
+
+def _running_here(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: it runs
+        return True
+    return True
+
+
+def resolve_link(cfg: GroundConfig) -> GroundConfig:
+    """``cfg`` with the endpoints and the namespace to use: --connect as given, else those in
+    the mission's ground.json (:data:`mission.bridge.LINK_FILE`). A missing, malformed or
+    stale file raises :class:`LinkFileError` with one line."""
+    if cfg.connect:
+        return replace(cfg, namespace=cfg.namespace or "ground")
+    path = Path(cfg.mission) / LINK_FILE
+    fix = "start a mission first, or pass --mission OUT or --connect tcp/HOST:PORT"
+    try:
+        link = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise LinkFileError(f"{path} does not exist (no mission has its link to the "
+                            f"ground up in {cfg.mission}); {fix}") from None
+    except (OSError, ValueError) as exc:
+        raise LinkFileError(f"{path} cannot be read as JSON ({exc}); {fix}") from None
+    endpoints = link.get("endpoints") if isinstance(link, dict) else None
+    namespace = link.get("ground_namespace") if isinstance(link, dict) else None
+    if not (isinstance(endpoints, list) and endpoints
+            and all(isinstance(e, str) and e for e in endpoints)
+            and isinstance(namespace, str) and namespace):
+        raise LinkFileError(f"{path} is not a mission's ground link file (it needs "
+                            f"\"endpoints\" and \"ground_namespace\"); {fix}")
+    pid = link.get("pid")
+    if isinstance(pid, int) and link.get("host") == socket.gethostname() \
+            and not _running_here(pid):
+        raise LinkFileError(f"{path} was left by a mission (pid {pid}) that is no "
+                            f"longer running; {fix}")
+    return replace(cfg, connect=tuple(endpoints), namespace=cfg.namespace or namespace)
 
 
 def parse_command(line: str, command_id: int) -> GroundCommand:
@@ -188,10 +252,12 @@ class GroundStation:
             elif isinstance(value, np.ndarray):
                 np.save(self.cfg.out / "map_latest.npy", value)
                 row.update(points=len(value))
-            self.log.info("seq %d %-11s step %3d  %s", frame.seq, frame.kind, frame.step,
-                          summarize(frame.kind, value))
+        # On disk first: whoever reads the log line finds the row in received.jsonl.
         self._file.write(json.dumps(row) + "\n")
         self._file.flush()
+        if "error" not in row:
+            self.log.info("seq %d %-11s step %3d  %s", frame.seq, frame.kind, frame.step,
+                          summarize(frame.kind, value))
 
     def send(self, line: str) -> GroundCommand | None:
         """Send a typed command (once the mission manager's bridge listens)."""
@@ -229,12 +295,14 @@ def gaps(seqs: set[int]) -> list[int]:
 
 
 def main(cfg: GroundConfig) -> int:
+    source = "--connect" if cfg.connect else str(Path(cfg.mission) / LINK_FILE)
+    cfg = resolve_link(cfg)  # a LinkFileError is one line from the command line
     log = init_logging("ground")
     station = GroundStation(cfg, log)
-    log.info("ground station on %s (namespace %s); recording to %s",
-             ", ".join(cfg.connect), cfg.namespace, cfg.out)
+    log.info("ground station on %s (from %s, namespace %s); recording to %s",
+             ", ".join(cfg.connect), source, cfg.namespace, cfg.out)
     try:
-        for line in cfg.send:
+        for line in cfg.commands:
             station.send(line)
         if cfg.stdin and not sys.stdin.closed:
             def read_stdin() -> None:

@@ -109,11 +109,12 @@ class Operations:
         self.bridge = GroundBridge(cfg.contact, control.out, cfg.session)
         c, plan = cfg.contact, self.bridge.plan
         windows = plan.windows_between(0, cfg.steps)
-        log.info("link to the ground on %s (`rovergate ground --connect ...` to follow): "
-                 "%d windows in %d steps (first %s), light time %d steps, %g kbit/s; "
-                 "%d items already queued in %s", ", ".join(c.ground_listen), len(windows),
-                 cfg.steps, windows[0] if windows else "none", plan.light_steps,
-                 c.downlink_kbps, len(self.bridge.queue), self.bridge.queue.path)
+        log.info("link to the ground on %s (written to %s; follow it with `rovergate ground "
+                 "--mission %s`): %d windows in %d steps (first %s), light time %d steps, "
+                 "%g kbit/s; %d items already queued in %s", ", ".join(self.bridge.endpoints),
+                 self.bridge.link_file, control.out, len(windows), cfg.steps,
+                 windows[0] if windows else "none", plan.light_steps, c.downlink_kbps,
+                 len(self.bridge.queue), self.bridge.queue.path)
         self.paused = False
         self.abort = False
         self.events_sent = 0

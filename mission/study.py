@@ -80,7 +80,54 @@ class StudyConfig:
     """Show a progress bar with an ETA."""
     mission: MissionConfig = field(default_factory=MissionConfig)
     """Every other mission setting (sensing, planner, gate, ...), as `rovergate run` takes
-    them; scene, start, condition, seed, steps and platform come from the study."""
+    them. The study sets the scene, start, condition, seed, steps, platform, out, in-process
+    and progress of every run, and refuses those --mission flags (see OWNED_MISSION_FLAGS)."""
+
+
+class StudyFlagError(ConfigError):
+    """A --mission flag for a setting the study makes itself (the message names the study's
+    flag to use instead)."""
+
+
+OWNED_MISSION_FLAGS: dict[str, str] = {
+    "platform": "use --platform {value}",
+    "steps": "use --steps {value}",
+    "scene": "use --scenes {value}",
+    "scene.name": "use --scenes {value}",
+    "scene.d-scene-m": "the study takes it from each scene; leave it out",
+    "scene.bounds-m": "the study takes it from each scene; leave it out",
+    "start": "use --starts {value}",
+    "condition": "use --conditions {value}",
+    "seed": "repetition r runs with seed r; use --reps N for more seeds",
+    "out": "use --out {value} (each run goes to OUT/runs/<id>)",
+    "in-process": "every run is in process; leave it out",
+    "progress": "use --progress or --no-progress (the study's progress bar)",
+}
+"""The --mission flags (after ``--mission.``) of what :func:`mission_config` sets for every
+run, and what to do instead; ``{value}`` is the value given (VALUE if none)."""
+
+
+def refuse_owned_mission_flags(argv: list[str]) -> None:
+    """Raise :class:`StudyFlagError` on the first ``--mission.X`` flag in ``argv`` (the
+    study's arguments) for a setting the study makes itself, which would otherwise be
+    accepted and silently overridden. It reads argv: a parsed config cannot tell a flag given
+    from a default."""
+    for i, arg in enumerate(argv):
+        if not arg.startswith("--mission."):
+            continue
+        flag, eq, value = arg.partition("=")
+        name = flag.removeprefix("--mission.").replace("_", "-")
+        section, dot, last = name.rpartition(".")
+        if last.startswith("no-"):  # the negative of a boolean flag: --mission.no-progress
+            name = section + dot + last.removeprefix("no-")
+        hint = OWNED_MISSION_FLAGS.get(name)
+        if hint is None:
+            continue
+        if not eq:
+            value = argv[i + 1] if i + 1 < len(argv) and not argv[i + 1].startswith("--") \
+                else ""
+        raise StudyFlagError(f"{flag} is set by the study for every run; "
+                             + hint.format(value=value or "VALUE"))
 
 
 @dataclass(frozen=True)
@@ -224,9 +271,12 @@ def main(cfg: StudyConfig) -> int:
     sessions.append(session)
 
     def save_progress() -> None:
+        # Written whole or not at all: a study killed mid-write must still resume.
         session["wall_s"] = time.perf_counter() - t0
-        settings_path.write_text(json.dumps({"settings": settings, "sessions": sessions},
-                                            indent=1) + "\n")
+        tmp = settings_path.with_name(f".{settings_path.name}.tmp")
+        tmp.write_text(json.dumps({"settings": settings, "sessions": sessions}, indent=1)
+                       + "\n")
+        os.replace(tmp, settings_path)
 
     save_progress()
     failures: list[tuple[str, str]] = []
@@ -247,6 +297,7 @@ def main(cfg: StudyConfig) -> int:
                     else:
                         session["runs"] += 1
                         bar.set_postfix_str(f"{run_id} {seconds:.0f}s")
+                        log.info("run %s finished in %.0f s", run_id, seconds)
                     save_progress()
         except KeyboardInterrupt:
             bar.close()

@@ -262,9 +262,12 @@ class ContactConfig:
     pose samples are dropped first; events are never dropped (see mission/downlink.py)."""
     map_snapshot_points: int = 20_000
     """Most points in one downlinked map snapshot (the observed surface, thinned evenly)."""
-    ground_listen: tuple[str, ...] = ("tcp/127.0.0.1:7448",)
-    """Endpoints where the ground network listens (the mission manager's ground-side session);
-    `rovergate ground --connect` one of them. tcp/0.0.0.0:7448 lets another machine in."""
+    ground_listen: tuple[str, ...] = ()
+    """Endpoints where the ground network listens (the mission manager's ground-side session).
+    Empty: a free port on 127.0.0.1 (port 0 in any endpoint also takes a free port), so that
+    missions on one machine never collide. The endpoints opened go into OUT/ground.json while
+    the link is up, where `rovergate ground --mission OUT` finds them. tcp/0.0.0.0:7448 lets
+    another machine in (`rovergate ground --connect tcp/ROVER:7448`)."""
     ground_namespace: str = "ground"
     """Prefix of the ground network's keys."""
     drain_steps: int = 200

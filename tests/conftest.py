@@ -80,10 +80,13 @@ class Waiter:
 class Mission:
     """A ``rovergate ...`` process whose stderr is read line by line as it comes."""
 
-    def __init__(self, args: list[str]) -> None:
+    def __init__(self, args: list[str], stdin: bool = False, new_session: bool = False
+                 ) -> None:
         self.args = args
         self.proc = subprocess.Popen([*ROVERGATE, *args], stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+                                     stderr=subprocess.PIPE, text=True,
+                                     stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
+                                     start_new_session=new_session)
         self.lines: list[str] = []
         self.waiter = Waiter()
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -118,6 +121,25 @@ class Mission:
             raise AssertionError(f"rovergate exited with no line /{pattern}/{self._tail()}")
         return result
 
+    def wait_for_lines(self, pattern: str, count: int, timeout_s: float = 240) -> list[str]:
+        """The first ``count`` stderr lines matching ``pattern``, waiting for them."""
+        def state() -> list[str] | str | None:
+            hits = [line for line in self.lines if re.search(pattern, line)]
+            if len(hits) >= count:
+                return hits[:count]
+            return "ended" if self.lines[-1:] == [""] else None
+        result = self.waiter.wait_for(state, timeout_s, f"{count} lines /{pattern}/",
+                                      self._tail)
+        if result == "ended":
+            raise AssertionError(f"rovergate exited before {count} lines /{pattern}/"
+                                 f"{self._tail()}")
+        return result
+
+    def send(self, line: str) -> None:
+        """Type a line on the process's standard input."""
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
     def pid(self, module: str) -> int:
         """The pid of the live ``module`` process (from the latest "started" line)."""
         self.wait_for_line(rf"started {module} \(pid \d+\)")
@@ -138,14 +160,30 @@ class Mission:
             self.proc.wait(30)
 
 
+def wait_gone(pid: int, timeout_s: float) -> bool:
+    """Wait for process ``pid`` (not necessarily our child) to exit: True once it has, False
+    when it is still there after ``timeout_s``. Event-driven, through a pidfd."""
+    import os
+    import select
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return True
+    try:
+        return bool(select.select([fd], [], [], timeout_s)[0])
+    finally:
+        os.close(fd)
+
+
 @pytest.fixture
 def launch() -> Iterator[Callable[..., Mission]]:
     """Start ``rovergate`` processes (``launch("run", "--steps", "5", ...)``); any still
     running at the end of the test is killed."""
     started: list[Mission] = []
 
-    def start(*args: str) -> Mission:
-        m = Mission([*args, "--no-progress"] if args and args[0] == "run" else list(args))
+    def start(*args: str, stdin: bool = False, new_session: bool = False) -> Mission:
+        flags = [*args, "--no-progress"] if args and args[0] in ("run", "study") else list(args)
+        m = Mission(flags, stdin=stdin, new_session=new_session)
         started.append(m)
         return m
     yield start
@@ -160,13 +198,16 @@ class StatusWatcher:
     def __init__(self, port: int) -> None:
         from rovergate.messages import decode
         self.steps: list[int] = []
+        self.states: list[str] = []
         self.waiter = Waiter()
         self.session = zenoh.open(zenoh_config(SessionConfig(
             mode="client", connect=(f"tcp/127.0.0.1:{port}",))))
 
         def on_status(sample: zenoh.Sample) -> None:
+            step, status = decode("status", sample.payload.to_bytes())
             with self.waiter.cv:
-                self.steps.append(decode("status", sample.payload.to_bytes())[0])
+                self.steps.append(step)
+                self.states.append(status.state)
                 self.waiter.cv.notify_all()
         self._sub = self.session.declare_subscriber("rover/mission/status", on_status)
 

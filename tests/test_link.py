@@ -3,20 +3,24 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import socket
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import pytest
+import tyro
+from conftest import ROVERGATE, Mission, StatusWatcher
 
+from mission.bridge import LINK_FILE
 from mission.contact import ContactPlan, ContactPlanError
 from mission.downlink import DownlinkQueue
-from mission.ground import gaps, parse_command
+from mission.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
 from mission.operations import CommandError, apply_settings
 from rovergate.config import ContactConfig, MissionConfig
+from rovergate.errors import ConfigError
 
 
 def test_periodic_and_explicit_windows():
@@ -130,7 +134,7 @@ def test_queue_survives_a_killed_mission_manager(tmp_path: Path):
 def test_corrupt_queue_file_is_one_clear_line(tmp_path: Path):
     path = tmp_path / "q.sqlite"
     path.write_bytes(b"not a database at all" * 100)
-    with pytest.raises(SystemExit, match="not a usable SQLite file.*move it away"):
+    with pytest.raises(ConfigError, match="not a usable SQLite file.*move it away"):
         DownlinkQueue(path)
 
 
@@ -152,6 +156,97 @@ def test_ground_refuses_malformed_commands(line):
         parse_command(line, 1)
 
 
+@pytest.mark.parametrize("args, commands", [
+    (["--send", "pause", "--send", "resume"], ["pause", "resume"]),  # not only the last
+    (["--send", "set gate.k=3", "pause"], ["set gate.k=3", "pause"]),
+    (["--send", "set gate.k=3", "pause", "--send", "resume"], ["set gate.k=3", "pause",
+                                                                 "resume"]),
+    ([], []),
+])
+def test_ground_sends_every_command_given(args, commands):
+    assert tyro.cli(GroundConfig, args=args).commands == commands
+
+
+def _link_file(mission: Path, **fields) -> None:
+    link = {"endpoints": ["tcp/127.0.0.1:40001"], "ground_namespace": "earth",
+            "rover_namespace": "rover", "pid": os.getpid(), "host": socket.gethostname(),
+            "started_at": "2025-01-01T00:00:00+00:00", **fields}
+    mission.mkdir(exist_ok=True)
+    (mission / LINK_FILE).write_text(json.dumps(link))
+
+
+def test_ground_finds_the_link_in_the_missions_directory(tmp_path: Path):
+    assert GroundConfig().mission == MissionConfig().out  # `rovergate run`'s default --out
+    _link_file(tmp_path)
+    cfg = resolve_link(GroundConfig(mission=tmp_path))
+    assert (cfg.connect, cfg.namespace) == (("tcp/127.0.0.1:40001",), "earth")
+    given = resolve_link(GroundConfig(mission=tmp_path, connect=("tcp/10.0.0.2:7448",)))
+    assert (given.connect, given.namespace) == (("tcp/10.0.0.2:7448",), "ground")  # it wins
+    assert resolve_link(GroundConfig(mission=tmp_path, namespace="mars")).namespace == "mars"
+
+
+def _dead_pid() -> int:
+    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, timeout=60)
+    return int(proc.stdout)
+
+
+@pytest.mark.parametrize("content, why", [
+    (None, "does not exist"),
+    ("{not json", "cannot be read as JSON"),
+    ('{"endpoints": [], "ground_namespace": "ground"}', "is not a mission's ground link file"),
+    ('["tcp/127.0.0.1:40001"]', "is not a mission's ground link file"),
+    ("dead", "no longer running"),
+])
+def test_ground_without_a_usable_link_file_says_so_in_one_line(tmp_path: Path, content, why):
+    if content == "dead":
+        _link_file(tmp_path, pid=_dead_pid())
+    elif content is not None:
+        (tmp_path / LINK_FILE).write_text(content)
+    with pytest.raises(LinkFileError) as e:
+        resolve_link(GroundConfig(mission=tmp_path))
+    message = str(e.value)
+    assert message.startswith(str(tmp_path / LINK_FILE)) and why in message
+    assert message.endswith("start a mission first, or pass --mission OUT or --connect "
+                            "tcp/HOST:PORT") and "\n" not in message
+
+
+@pytest.mark.parametrize("listen", [(), ("tcp/127.0.0.1:0",)])
+def test_bridge_takes_a_free_port_and_says_where_while_the_link_is_up(tmp_path: Path, listen):
+    from mission.bridge import GroundBridge
+    bridge = GroundBridge(ContactConfig(ground_listen=listen), tmp_path)
+    try:
+        link = json.loads((tmp_path / LINK_FILE).read_text())
+        (endpoint,) = link["endpoints"]
+        assert re.fullmatch(r"tcp/127\.0\.0\.1:\d+", endpoint) and not endpoint.endswith(":0")
+        assert (link["pid"], link["ground_namespace"], link["rover_namespace"]) == (
+            os.getpid(), "ground", "rover")
+        assert tuple(link["endpoints"]) == bridge.endpoints
+        # Its port is taken now: a mission asking for that very endpoint is refused in a line.
+        with pytest.raises(ConfigError, match=r"^the ground endpoint .* could not be "
+                                              r"opened .*leave --contact.ground-listen out"):
+            GroundBridge(ContactConfig(ground_listen=(endpoint,)), tmp_path / "other")
+    finally:
+        bridge.close()
+    assert not (tmp_path / LINK_FILE).exists()
+
+
+def test_bridge_leaves_another_missions_link_file_alone(tmp_path: Path):
+    from mission.bridge import GroundBridge
+    bridge = GroundBridge(ContactConfig(), tmp_path)
+    _link_file(tmp_path, pid=os.getpid() + 1)  # another mission, same --out, since
+    bridge.close()
+    assert json.loads((tmp_path / LINK_FILE).read_text())["pid"] == os.getpid() + 1
+
+
+@pytest.mark.e2e
+def test_ground_command_without_a_mission_is_one_line(tmp_path: Path):
+    r = subprocess.run([*ROVERGATE, "ground", "--mission", str(tmp_path / "none"), "--out",
+                        str(tmp_path / "g")], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and r.stderr.count("\n") == 1, r.stderr
+    assert r.stderr.startswith(f"error: {tmp_path / 'none' / LINK_FILE} does not exist")
+
+
 def test_settings_change_in_flight_only_where_allowed():
     cfg, modules = apply_settings(MissionConfig(), ["gate.k=3", "gate.epsilon_frac=0.05"])
     assert (cfg.gate.k, cfg.gate.epsilon_frac, modules) == (3, 0.05, {"gate"})
@@ -165,62 +260,77 @@ def test_settings_change_in_flight_only_where_allowed():
 
 # --- end to end: the process set, the bridge and a ground station, in Zenoh peer mode ------
 
-ROVERGATE = [sys.executable, "-m", "mission.cli"]
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
-class Mission:
-    """A process-set mission with a ground station beside it, and the mission's status."""
+class LinkedMission:
+    """A process-set mission with a ground station beside it (found through OUT/ground.json),
+    and the mission clock's ticks."""
 
     def __init__(self, tmp_path: Path, *flags: str, steps: int) -> None:
         from rovergate.session import free_loopback_port
-        self.port, ground_port = free_loopback_port(), free_loopback_port()
+        self.port = free_loopback_port()
         self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
-        self.proc = subprocess.Popen(
-            [*ROVERGATE, "run", "--steps", str(steps), "--no-progress", "--out", str(self.out),
-             "--listen", f"tcp/127.0.0.1:{self.port}",
-             "--contact.ground-listen", f"tcp/127.0.0.1:{ground_port}", *flags],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.ground = subprocess.Popen(
-            [*ROVERGATE, "ground", "--connect", f"tcp/127.0.0.1:{ground_port}", "--out",
-             str(self.ground_out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT, text=True)
-        self.lines: list[str] = []
-        threading.Thread(target=lambda: self.lines.extend(self.proc.stderr),
-                         daemon=True).start()
-        from test_health import _status_watcher
-        self.steps: list[int] = []
-        self.stop = threading.Event()
-        self.watcher = _status_watcher(self.port, self.steps, self.stop)
+        # The ground link takes a free port of its own and says which in OUT/ground.json.
+        self.mission = Mission(["run", "--steps", str(steps), "--no-progress", "--out",
+                                str(self.out), "--listen", f"tcp/127.0.0.1:{self.port}", *flags])
+        self.ground: Mission | None = None
+        self.watcher: StatusWatcher | None = None
+        try:
+            # Logged once OUT/ground.json is written.
+            line = self.mission.wait_for_line("link to the ground on").string
+            link = json.loads((self.out / LINK_FILE).read_text())
+            assert link["pid"] == self.mission.proc.pid and \
+                link["ground_namespace"] == "ground" and link["rover_namespace"] == "rover", link
+            assert f"link to the ground on {link['endpoints'][0]} " in line
+            self.watcher = StatusWatcher(self.port)
+            self.ground = Mission(["ground", "--mission", str(self.out), "--out",
+                                   str(self.ground_out)], stdin=True)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def steps(self) -> list[int]:
+        return self.watcher.steps
 
     def wait_step(self, step: int, timeout_s: float = 240) -> int:
-        deadline = time.monotonic() + timeout_s
-        while max(self.steps, default=-1) < step:
-            assert self.proc.poll() is None, "".join(self.lines)[-3000:]
-            assert time.monotonic() < deadline, f"mission did not reach step {step}"
-            time.sleep(0.01)
-        return max(self.steps)
+        self.watcher.wait_step(step, timeout_s)
+        return max(self.watcher.steps)
 
     def command(self, line: str) -> None:
-        self.ground.stdin.write(line + "\n")
-        self.ground.stdin.flush()
+        self.ground.send(line)
+
+    def wait_for_row(self, pattern: str, pred, timeout_s: float = 240) -> dict:
+        """The first row of the station's received.jsonl matching ``pred``, once the station
+        has logged a line matching ``pattern`` (it logs a row after writing it)."""
+        self.ground.wait_for_line(pattern, timeout_s)
+        rows = [json.loads(line) for line in
+                (self.ground_out / "received.jsonl").read_text().splitlines()]
+        return next(r for r in rows if pred(r))
+
+    def close(self) -> None:
+        if self.watcher is not None:
+            self.watcher.close()
+        for m in (self.mission, self.ground):
+            if m is not None:
+                m.kill()
 
     def finish(self, timeout_s: float = 300) -> tuple[dict, list[dict], str]:
         try:
-            assert self.proc.wait(timeout_s) == 0, "".join(self.lines)[-4000:]
-            ground_out, _ = self.ground.communicate(timeout=60)
+            assert self.mission.finish(timeout_s) == 0, self.mission.text[-4000:]
+            self.ground.proc.stdin.close()
+            assert self.ground.finish(60) == 0, self.ground.text[-3000:]
         finally:
-            self.stop.set()
-            for p in (self.proc, self.ground):
-                if p.poll() is None:
-                    p.kill()
-        assert self.ground.returncode == 0, ground_out[-3000:]
+            self.close()
+        assert not (self.out / LINK_FILE).exists()  # the link is down: its file has gone
         metrics = json.loads((self.out / "metrics.json").read_text())
         rows = [json.loads(line) for line in
                 (self.ground_out / "received.jsonl").read_text().splitlines()]
-        return metrics, rows, ground_out
+        return metrics, rows, self.ground.text
 
 
+@pytest.mark.e2e
 def test_telemetry_crosses_blackouts_whole_and_commands_wait_for_a_window(tmp_path: Path):
     """Windows of 2 steps every 6, light time 1 step: four blackouts in 24 steps. Every
     status reaches the ground once, numbered without a gap; a command sent in a blackout
@@ -228,7 +338,7 @@ def test_telemetry_crosses_blackouts_whole_and_commands_wait_for_a_window(tmp_pa
     steps = 24
     plan = ContactPlan(ContactConfig(period_steps=6, window_steps=2, first_window_step=2,
                                      light_time_s=60, step_s=60))
-    m = Mission(tmp_path, "--contact.period-steps", "6", "--contact.window-steps", "2",
+    m = LinkedMission(tmp_path, "--contact.period-steps", "6", "--contact.window-steps", "2",
                 "--contact.first-window-step", "2", "--contact.light-time-s", "60",
                 steps=steps)
     sent_at = m.wait_step(10)  # steps 10 and 11: a blackout (windows at 8-9 and 14-15)
@@ -257,11 +367,12 @@ def test_telemetry_crosses_blackouts_whole_and_commands_wait_for_a_window(tmp_pa
     assert "gaps: none" in ground_log
 
 
+@pytest.mark.e2e
 def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
     """A ground command replaces the built-in planner with a program that only knows zenoh
     and rosbags (examples/frontier_planner.py); it plans every later step."""
     steps = 14
-    m = Mission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
+    m = LinkedMission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
                 "--contact.light-time-s", "0", steps=steps)
     m.wait_step(3)
     m.command(f"planner cmd {sys.executable} {EXAMPLES / 'frontier_planner.py'}")
@@ -277,35 +388,27 @@ def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
     assert metrics["coverage"][-1] > metrics["coverage"][swapped]
 
 
-def _wait_for_row(path: Path, pred, timeout_s: float = 240) -> dict:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if path.exists():
-            for line in path.read_text().splitlines():
-                row = json.loads(line)
-                if pred(row):
-                    return row
-        time.sleep(0.05)
-    raise AssertionError(f"nothing matching came down in {timeout_s:.0f} s")
-
-
+@pytest.mark.e2e
 def test_condition_change_pause_resume_and_abort_from_the_ground(tmp_path: Path):
     """The mission starts under obs; the ground switches it to the gated filter (the mapper
     and the gate restart with the model on and replay the past), pauses it, resumes it and
     aborts it."""
-    m = Mission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
+    m = LinkedMission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
                 "--contact.light-time-s", "0", steps=60)
-    received = m.ground_out / "received.jsonl"
     m.wait_step(1)
     m.command("condition gated")
-    changed = _wait_for_row(received, lambda r: r.get("verb") == "condition")
+    changed = m.wait_for_row(r"command_ack .*\(condition\)",
+                             lambda r: r.get("verb") == "condition")
     assert changed["state"] == "executed", changed
     m.command("pause")
-    paused = _wait_for_row(received, lambda r: r.get("event") == "paused")
-    time.sleep(1.0)
+    paused = m.wait_for_row(r"event .* paused", lambda r: r.get("event") == "paused")
+    # While paused the mission publishes a keep-alive a second: after two of them, no tick
+    # has gone past the held step.
+    m.watcher.waiter.wait_for(lambda: m.watcher.states.count("paused") >= 2, 60,
+                              "two 'paused' keep-alives")
     held = max(m.steps)
     m.command("resume")
-    _wait_for_row(received, lambda r: r.get("event") == "resumed")
+    m.wait_for_row(r"event .* resumed", lambda r: r.get("event") == "resumed")
     m.command("abort")
     metrics, rows, _ = m.finish()
     assert metrics["state"] == "aborted" and len(metrics["coverage"]) < 61
@@ -317,3 +420,25 @@ def test_condition_change_pause_resume_and_abort_from_the_ground(tmp_path: Path)
     assert not any(predicted[:step]) and any(predicted[step:])  # the model runs from then on
     assert held == paused["step"]  # nothing moved while paused
     assert [r["state"] for r in rows if r["kind"] == "status"][-1] == "aborted"
+
+
+@pytest.mark.e2e
+def test_two_missions_with_default_links_run_side_by_side(tmp_path: Path):
+    """No fixed port: two missions started together with the default contact flags each open
+    their link to the ground on a port of their own, and both end cleanly."""
+    procs = [subprocess.Popen([*ROVERGATE, "run", "--steps", "2", "--no-progress", "--out",
+                               str(tmp_path / name)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+             for name in ("one", "two")]
+    try:
+        logs = [p.communicate(timeout=300)[1] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for p, log in zip(procs, logs, strict=True):
+        assert p.returncode == 0, log[-3000:]
+    endpoints = [re.search(r"link to the ground on (tcp/127\.0\.0\.1:\d+) ", log).group(1)
+                 for log in logs]
+    assert endpoints[0] != endpoints[1]
+    assert not any((tmp_path / name / LINK_FILE).exists() for name in ("one", "two"))

@@ -126,11 +126,12 @@ def test_checkpoint_loads_offline_from_the_installed_package(tmp_path: Path):
 
 
 def test_missing_or_corrupt_checkpoint_is_one_line_saying_how_to_rebuild(tmp_path: Path):
-    with pytest.raises(CheckpointError, match=r"missing; rebuild it with `rovergate train`"):
+    with pytest.raises(CheckpointError, match=r"missing; rebuild it with `rovergate train --out "
+                                         r".*nope\.pt`"):
         load_checkpoint(tmp_path / "nope.pt")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match=r"corrupt .*rebuild it with `rovergate train`"):
+    with pytest.raises(CheckpointError, match=r"corrupt .*rebuild it with `rovergate train --out "):
         load_checkpoint(junk)
     cut = tmp_path / "cut.pt"
     cut.write_bytes(shipped_checkpoint().read_bytes()[:5000])
@@ -151,6 +152,20 @@ def test_a_corrupt_checkpoint_stops_the_command_line_in_one_line(tmp_path: Path)
         line for line in r.stderr.strip().splitlines() if "Traceback" not in line]
     assert r.stderr.strip().splitlines()[-1].startswith("error: the occupancy model checkpoint")
     assert not (tmp_path / "r" / "logs").exists(), "modules were started"
+
+
+def test_training_writes_outside_the_package_unless_told_and_missions_load_the_shipped():
+    """A trial `rovergate train` must not replace the shipped model; missions still use it."""
+    import tyro
+
+    from mapper.mapper import mission_checkpoint
+    from rovergate.config import MissionConfig
+    out = tyro.cli(TrainConfig, args=[]).out
+    assert out == TrainConfig().out == Path("runs/train/occupancy.pt")
+    package = shipped_checkpoint().resolve().parent.parent
+    assert not out.resolve().is_relative_to(package)
+    assert not out.with_suffix(".json").resolve().is_relative_to(package)
+    assert mission_checkpoint(MissionConfig(condition="learned")).path == shipped_checkpoint()
 
 
 def test_a_short_training_run_lowers_the_loss():

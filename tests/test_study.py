@@ -4,20 +4,27 @@ through the command line, and resumption after the study is killed mid-way."""
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import ROVERGATE, wait_gone
 
 from mission.metrics import auc, final_coverage, s70, suppression_audit
+from mission.study import (
+    OWNED_MISSION_FLAGS,
+    RunSpec,
+    StudyConfig,
+    StudyFlagError,
+    mission_config,
+    refuse_owned_mission_flags,
+)
 from mission.tables import bootstrap_ci, table1, table2
-
-ROVERGATE = [sys.executable, "-m", "mission.cli"]
+from rovergate.config import MissionConfig, SceneConfig, to_dict
 
 
 def test_final_coverage_auc_and_s70_on_hand_made_curves():
@@ -88,12 +95,14 @@ def test_table2_gives_mean_and_std_over_repetitions_per_start():
     assert fig["starts"]["s/a"]["delta"]["n"] == 3
 
 
+#: A small study: 10 runs of 3 steps.
+STUDY = ("study", "--scenes", "arch_field", "--starts", "a", "b", "--conditions", "obs",
+         "learned", "gated", "--filter-reps", "2", "--steps", "3", "--bootstrap", "200")
+
+
 def study(out: Path, *extra: str, **kw) -> subprocess.Popen:
-    return subprocess.Popen(
-        [*ROVERGATE, "study", "--scenes", "arch_field", "--starts", "a", "b", "--conditions",
-         "obs", "learned", "gated", "--filter-reps", "2", "--steps", "3", "--bootstrap", "200",
-         "--no-progress", "--out", str(out), *extra],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+    return subprocess.Popen([*ROVERGATE, *STUDY, "--no-progress", "--out", str(out), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
 def results(out: Path) -> list[dict]:
@@ -102,6 +111,7 @@ def results(out: Path) -> list[dict]:
         return [{k: v for k, v in r.items() if not k.endswith("_s")} for r in csv.DictReader(f)]
 
 
+@pytest.mark.e2e
 def test_smoke_study_writes_every_output_and_is_the_same_in_any_worker(tmp_path: Path):
     one = study(tmp_path / "one", "--workers", "1")
     two = study(tmp_path / "two", "--workers", "2")
@@ -126,19 +136,14 @@ def test_smoke_study_writes_every_output_and_is_the_same_in_any_worker(tmp_path:
     assert results(tmp_path / "one") == rows
 
 
-def test_a_killed_study_resumes_and_loses_only_runs_in_flight(tmp_path: Path):
+@pytest.mark.e2e
+def test_a_killed_study_resumes_and_loses_only_runs_in_flight(tmp_path: Path, launch):
     out = tmp_path / "study"
-    p = study(out, "--workers", "1", start_new_session=True)
     runs = out / "runs"
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline:
-        finished = [d for d in runs.glob("*") if (d / "metrics.json").exists()] \
-            if runs.exists() else []
-        if len(finished) >= 3:
-            break
-        time.sleep(0.2)
-    os.killpg(p.pid, signal.SIGKILL)  # the study and its workers, as a kill -9 of the job
-    p.wait()
+    p = launch(*STUDY, "--out", str(out), "--workers", "1", new_session=True)
+    p.wait_for_lines(r"run \S+ finished in", 3, timeout_s=300)
+    os.killpg(p.proc.pid, signal.SIGKILL)  # the study and its workers, as a kill -9 of the job
+    p.finish(60)
     before = {d.name: (d / "metrics.json").stat().st_mtime_ns for d in runs.iterdir()
               if (d / "metrics.json").exists()}
     assert 3 <= len(before) < 10
@@ -156,6 +161,7 @@ def test_a_killed_study_resumes_and_loses_only_runs_in_flight(tmp_path: Path):
     assert results(out) == results(tmp_path / "whole")
 
 
+@pytest.mark.e2e
 def test_study_refuses_bad_settings_in_one_line(tmp_path: Path):
     r = subprocess.run([*ROVERGATE, "study", "--starts", "z", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=120)
@@ -165,20 +171,92 @@ def test_study_refuses_bad_settings_in_one_line(tmp_path: Path):
     assert r.returncode != 0 and "unknown condition 'psychic'" in r.stderr
 
 
-def test_a_terminated_study_stops_its_workers(tmp_path: Path):
+@pytest.mark.e2e
+def test_a_terminated_study_stops_its_workers(tmp_path: Path, launch):
     """SIGTERM (or Ctrl-C) on the study stops its worker processes too, not only itself."""
-    p = study(tmp_path / "s", "--workers", "2")
+    p = launch(*STUDY, "--out", str(tmp_path / "s"), "--workers", "2")
     runs = tmp_path / "s" / "runs"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and not (runs.exists() and list(runs.glob(".*"))):
-        time.sleep(0.1)
-    assert list(runs.glob(".*")), "no run started"
-    # A run in flight is written under .<id>.tmp-<worker pid>.
+    # The first run finished: both workers are up, and each holds a run in flight, written
+    # under .<id>.tmp-<worker pid>.
+    p.wait_for_lines(r"run \S+ finished in", 1, timeout_s=120)
     workers = {int(d.name.rsplit("-", 1)[1]) for d in runs.glob(".*.tmp-*")}
-    p.send_signal(signal.SIGTERM)
-    _, err = p.communicate(timeout=60)
-    assert p.returncode == 130 and "re-run the same command to resume" in err
-    time.sleep(1.0)
+    assert workers, "no run in flight"
+    p.proc.send_signal(signal.SIGTERM)
+    assert p.finish(60) == 130 and "re-run the same command to resume" in p.text
     for pid in workers:
-        with pytest.raises(ProcessLookupError):
-            os.kill(pid, 0)
+        assert wait_gone(pid, 30), f"worker {pid} still running 30 s after the study stopped"
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--mission.platform", "rover"], "--mission.platform is set by the study for every run; "
+                                      "use --platform rover"),
+    (["--steps", "5", "--mission.steps=50"], "--mission.steps is set by the study for every "
+                                             "run; use --steps 50"),
+    (["--mission.scene.name", "crater"], "--mission.scene.name is set by the study for every "
+                                         "run; use --scenes crater"),
+    (["--mission.no-progress"], "--mission.no-progress is set by the study for every run; "
+                                "use --progress or --no-progress (the study's progress bar)"),
+    (["--mission.in_process"], "--mission.in_process is set by the study for every run; "
+                               "every run is in process; leave it out"),
+    (["--mission.seed", "3"], "--mission.seed is set by the study for every run; repetition r "
+                              "runs with seed r; use --reps N for more seeds"),
+    (["--mission.out"], "--mission.out is set by the study for every run; use --out VALUE "
+                        "(each run goes to OUT/runs/<id>)"),
+])
+def test_study_refuses_mission_flags_it_sets_itself(argv, message):
+    with pytest.raises(StudyFlagError) as e:
+        refuse_owned_mission_flags(argv)
+    assert str(e.value) == message
+
+
+def test_study_lets_every_other_mission_flag_through():
+    refuse_owned_mission_flags(["--platform", "rover", "--steps", "5", "--out", "runs/x",
+                                "--mission.sensing.noise-frac", "0.01", "--mission.gate.k=3",
+                                "--mission.scene.up-axis", "y", "--mission.planner.name",
+                                "beam", "--no-progress"])
+
+
+def test_the_refused_flags_are_exactly_what_the_study_sets():
+    """Set every field to a value the study does not use: what it changed is what it owns."""
+    own = MissionConfig(scene=SceneConfig(name="mine.ply", d_scene_m=7.0,
+                                          bounds_m=(1, 2, 3, 4, 5, 6)),
+                        platform="other", start="q", steps=999, seed=99, condition="truth",
+                        out=Path("elsewhere"), in_process=False, progress=True)
+    made = mission_config(StudyConfig(mission=own), RunSpec("crater", "b", "obs", 0),
+                          Path("runs/x"))
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            key = prefix + k.replace("_", "-")
+            out.update(flat(v, key + ".") if isinstance(v, dict) else {key: v})
+        return out
+    before, after = flat(to_dict(own)), flat(to_dict(made))
+    changed = {k for k in before if before[k] != after[k]}
+    assert changed == set(OWNED_MISSION_FLAGS) - {"scene"}  # `scene` is --scenes' alias
+
+
+@pytest.mark.e2e
+def test_a_mission_flag_of_the_study_refused_before_anything_starts(tmp_path: Path):
+    r = subprocess.run([*ROVERGATE, "study", "--mission.platform", "rover", "--mission.steps",
+                        "50", "--out", str(tmp_path / "s")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and r.stderr == ("error: --mission.platform is set by the study "
+                                              "for every run; use --platform rover\n")
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.e2e
+def test_other_mission_flags_reach_every_run(tmp_path: Path):
+    out = tmp_path / "s"
+    r = subprocess.run([*ROVERGATE, "study", "--scenes", "arch_field", "--starts", "a",
+                        "--conditions", "learned", "--reps", "1", "--filter-reps", "1",
+                        "--steps", "2", "--workers", "1", "--bootstrap", "200",
+                        "--no-progress", "--out", str(out),
+                        "--mission.sensing.noise-frac", "0.01", "--mission.gate.k", "3"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (run,) = (out / "runs").iterdir()
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["sensing"]["noise_frac"] == 0.01 and saved["gate"]["k"] == 3
+    assert (saved["steps"], saved["platform"], saved["in_process"]) == (2, "flyer", True)
