@@ -106,6 +106,12 @@ OWNED_MISSION_FLAGS: dict[str, str] = {
 """The --mission flags (after ``--mission.``) of what :func:`mission_config` sets for every
 run, and what to do instead; ``{value}`` is the value given (VALUE if none)."""
 
+#: Sections and flags that only the process set reads: every study run is in one process, so
+#: they would have no effect.
+PROCESS_SET_ONLY: tuple[str, ...] = (
+    "contact", "planner.command", "ready-timeout-s", "step-timeout-s", "max-restarts",
+    "mode", "connect", "listen", "namespace", "multicast-scouting", "wait-for-peers")
+
 
 def refuse_owned_mission_flags(argv: list[str]) -> None:
     """Raise :class:`StudyFlagError` on the first ``--mission.X`` flag in ``argv`` (the
@@ -120,6 +126,9 @@ def refuse_owned_mission_flags(argv: list[str]) -> None:
         section, dot, last = name.rpartition(".")
         if last.startswith("no-"):  # the negative of a boolean flag: --mission.no-progress
             name = section + dot + last.removeprefix("no-")
+        if any(name == p or name.startswith(p + ".") for p in PROCESS_SET_ONLY):
+            raise StudyFlagError(f"{flag} has no effect on a study: every run is in one "
+                                 "process, and only the process set reads it; leave it out")
         hint = OWNED_MISSION_FLAGS.get(name)
         if hint is None:
             continue

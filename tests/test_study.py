@@ -209,6 +209,15 @@ def test_study_refuses_mission_flags_it_sets_itself(argv, message):
     assert str(e.value) == message
 
 
+@pytest.mark.parametrize("flag", ["--mission.contact.period-steps", "--mission.planner.command",
+                                  "--mission.max-restarts", "--mission.listen",
+                                  "--mission.step-timeout-s=5"])
+def test_study_refuses_mission_flags_that_only_the_process_set_reads(flag):
+    with pytest.raises(StudyFlagError, match="has no effect on a study: every run is in one "
+                                             "process"):
+        refuse_owned_mission_flags([flag, "3"])
+
+
 def test_study_lets_every_other_mission_flag_through():
     refuse_owned_mission_flags(["--platform", "rover", "--steps", "5", "--out", "runs/x",
                                 "--mission.sensing.noise-frac", "0.01", "--mission.gate.k=3",
