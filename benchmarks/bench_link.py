@@ -9,7 +9,7 @@ once (sim at step 2, planner 4, mapper 6, gate 8; the mapper runs the learned mo
 gated condition), and prints the median time from each death to the module's liveliness token
 and to the loop resuming (the module's first output again).
 
-Usage: python benchmarks/bench_link.py [--rounds 5] [--recovery]
+Usage: .venv/bin/python benchmarks/bench_link.py [--rounds 5] [--recovery]
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def bench_queue(tmp: Path, rounds: int) -> None:
 
 def bench_recovery(tmp: Path, rounds: int) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from test_health import _status_watcher
+    from conftest import StatusWatcher
 
     from rovergate.session import free_loopback_port
     kills = {2: "sim", 4: "planner", 6: "mapper", 8: "gate"}
@@ -85,22 +85,23 @@ def bench_recovery(tmp: Path, rounds: int) -> None:
              "--contact.no-enabled"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
             text=True)
         lines: list[str] = []
-        threading.Thread(target=lambda p=proc, ls=lines: ls.extend(p.stderr),
-                         daemon=True).start()
-        steps: list[int] = []
-        stop = threading.Event()
-        _status_watcher(port, steps, stop)
-        todo = dict(kills)
-        while todo and proc.poll() is None:
-            step = max(steps, default=-1)
-            if step in todo:
-                name = todo.pop(step)
-                pid = [int(m.group(1)) for line in list(lines)
-                       if (m := re.search(rf"started {name} \(pid (\d+)\)", line))][-1]
-                os.kill(pid, signal.SIGKILL)
-            time.sleep(0.01)
+        started = threading.Event()
+
+        def read(p=proc, ls=lines, ev=started) -> None:
+            for line in p.stderr:
+                ls.append(line)
+                if "started sim" in line:  # the mission's session listens by then
+                    ev.set()
+        threading.Thread(target=read, daemon=True).start()
+        started.wait(120)
+        watcher = StatusWatcher(port)
+        for step, name in kills.items():
+            watcher.wait_step(step, 300)
+            pid = [int(m.group(1)) for line in list(lines)
+                   if (m := re.search(rf"started {name} \(pid (\d+)\)", line))][-1]
+            os.kill(pid, signal.SIGKILL)
         proc.wait(600)
-        stop.set()
+        watcher.close()
         metrics = json.loads((out / "metrics.json").read_text())
         for e in metrics["restarts"]:
             ready[e["module"]].append(e["death_to_ready_s"])

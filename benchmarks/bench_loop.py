@@ -2,7 +2,7 @@
 
 Runs the same 20-step mission (same seed) alternately in process and as the process set over
 Zenoh, several rounds in one program so both see the same machine load, and prints medians and
-ratios. Usage: python benchmarks/bench_loop.py [--steps 20] [--rounds 3]
+ratios. Usage: .venv/bin/python benchmarks/bench_loop.py [--steps 20] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -15,8 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mission.hub import run_processes
-from mission.loop import run_in_process
+from mission.loop import run_in_process, run_processes
 from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig
 

@@ -7,7 +7,7 @@
 2. The process set, ``learned``, 15 steps: the mapper process's median step and its peak
    resident memory (from its log).
 
-Usage: python benchmarks/bench_mapper.py [--steps 30]
+Usage: .venv/bin/python benchmarks/bench_mapper.py [--steps 30]
 """
 
 from __future__ import annotations

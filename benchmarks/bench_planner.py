@@ -5,7 +5,7 @@ For each platform, one program runs the same in-process mission (``arch_field/a`
 one, alternating, and prints the median plan time per step, the median whole step, and the
 ratio beam / greedy. Target: the beam's median plan step under 2 s on the 2-core CPU.
 
-Usage: python benchmarks/bench_planner.py [--steps 40] [--rounds 1]
+Usage: .venv/bin/python benchmarks/bench_planner.py [--steps 40] [--rounds 1]
 """
 
 from __future__ import annotations

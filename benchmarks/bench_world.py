@@ -6,7 +6,7 @@ and puts them on a Zenoh session (loopback, no subscriber), and reports frames p
 (median over frames). Then it integrates those frames into S_t with the mapper and times each
 step's coverage update against ~100k ground-truth samples. Everything is measured in one run.
 
-Usage: python benchmarks/bench_world.py [--frames 20] [--scenes a b ...] [--degraded]
+Usage: .venv/bin/python benchmarks/bench_world.py [--frames 20] [--scenes a b ...] [--degraded]
 """
 
 from __future__ import annotations

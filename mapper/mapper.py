@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from mapper.grid import GridSpec, OccupancyGrid
 from mapper.integrate import VoxelSurface, backproject
-from mapper.model import Checkpoint, OccupancyPredictor, load_checkpoint
 from rovergate.conditions import get_condition
 from rovergate.config import MapperConfig, MissionConfig
 from rovergate.errors import ConfigError
@@ -17,6 +18,9 @@ from rovergate.types import (
     SensorFrame,
     make_cloud,
 )
+
+if TYPE_CHECKING:  # torch is imported only by a mapper that runs the model
+    from mapper.model import Checkpoint, OccupancyPredictor
 
 PREDICTION_MODES = ("auto", "on", "off")
 
@@ -40,6 +44,7 @@ def mission_checkpoint(cfg: MissionConfig) -> Checkpoint | None:
     corrupt checkpoint raises CheckpointError."""
     if not wants_prediction(cfg):
         return None
+    from mapper.model import load_checkpoint
     return load_checkpoint(cfg.mapper.checkpoint or None)
 
 
@@ -63,6 +68,7 @@ class Mapper:
             if bounds_m is None or not any(bounds_m):
                 raise ValueError("the learned prediction needs the box of interest")
             self.grid = OccupancyGrid(GridSpec.around(bounds_m, checkpoint.window.voxel_m))
+            from mapper.model import OccupancyPredictor
             self.predictor = OccupancyPredictor(checkpoint, self.grid)
 
     @classmethod

@@ -108,3 +108,17 @@ def test_in_process_transport_routes_by_the_graph():
         assert {x.module for x in t.timings()} == {"render", "integrate", "gate", "plan"}
     finally:
         t.finish(MissionStatus(0, 2, "done", "obs", 0.0, 0), failed=False)
+
+
+@pytest.mark.e2e
+def test_readme_benchmark_commands_run_as_written():
+    """Every benchmark command in the README names a program that starts (``--help``) with
+    the project's interpreter, from the project root, as the README writes it."""
+    readme = (ROOT / "README.md").read_text()
+    commands = set(re.findall(r"`(\S*python) (benchmarks/\w+\.py)", readme))
+    assert commands, "the README lists no benchmark command"
+    for interpreter, program in sorted(commands):
+        assert interpreter == ".venv/bin/python", (interpreter, program)
+        r = subprocess.run([sys.executable, program, "--help"], cwd=ROOT, capture_output=True,
+                           text=True, timeout=120)
+        assert r.returncode == 0 and "usage" in r.stdout.lower(), (program, r.stderr[-1500:])
