@@ -18,6 +18,7 @@ from pathlib import Path
 from mission.loop import run_in_process, run_processes
 from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig
+from rovergate.runtime import tune_allocator
 
 STAGES = ("render", "integrate", "gate", "plan", "execute")
 
@@ -28,6 +29,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--condition", default="obs")
     args = ap.parse_args()
+    tune_allocator()  # as every rovergate program does (rovergate/runtime.py)
     logging.basicConfig(level=logging.WARNING)
     tmp = Path(tempfile.mkdtemp(prefix="rovergate-bench-"))
     base = MissionConfig(steps=args.steps, condition=args.condition, progress=False)

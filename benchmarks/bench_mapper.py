@@ -32,6 +32,7 @@ from mission.loop import run_in_process
 from rover_sim.catalog import resolve_scene
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
+from rovergate.runtime import tune_allocator
 
 
 def mission(condition: str, steps: int, out: Path) -> MissionConfig:
@@ -72,6 +73,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=30)
     args = ap.parse_args()
+    tune_allocator()  # as every rovergate program does (rovergate/runtime.py)
     logging.basicConfig(level=logging.WARNING)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     with tempfile.TemporaryDirectory() as tmp:

@@ -19,6 +19,7 @@ import torch
 from mission.loop import run_in_process
 from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig
+from rovergate.runtime import tune_allocator
 
 
 def mission(platform: str, planner: str, steps: int) -> dict:
@@ -36,6 +37,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--rounds", type=int, default=1)
     args = ap.parse_args()
+    tune_allocator()  # as every rovergate program does (rovergate/runtime.py)
     torch.set_num_threads(1)
     logging.getLogger().setLevel(logging.WARNING)
     print(f"{args.steps}-step missions, arch_field/a, learned, {args.rounds} round(s); "

@@ -26,6 +26,7 @@ from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig, SceneConfig, SensingConfig
 from rovergate.keys import Keys
 from rovergate.messages import encode
+from rovergate.runtime import tune_allocator
 from rovergate.session import SessionConfig, zenoh_config
 from rovergate.types import xyz
 
@@ -37,6 +38,7 @@ def main() -> None:
     ap.add_argument("--degraded", action="store_true",
                     help="noise, blob and pixel dropout, grazing dropout and drift all on")
     args = ap.parse_args()
+    tune_allocator()  # as every rovergate program does (rovergate/runtime.py)
     logging.basicConfig(level=logging.WARNING)
     session = zenoh.open(zenoh_config(SessionConfig()))
     keys = Keys("rover")

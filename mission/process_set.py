@@ -42,7 +42,7 @@ from rovergate.graph import LAUNCHED, MODULES
 from rovergate.keys import Keys
 from rovergate.messages import MessageError
 from rovergate.module import STOP
-from rovergate.node import check_and_decode
+from rovergate.node import check_and_decode, stamp_of
 from rovergate.session import free_loopback_port, open_session
 from rovergate.types import MissionStatus, StepTiming
 
@@ -121,10 +121,16 @@ class ProcessSetTransport:
 
     def _on_sample(self, topic: str) -> Callable[[zenoh.Sample], None]:
         journalled = topic in self.journal.topics
+        # Topics the mission only journals (the camera's depth, intrinsics and pose): it needs
+        # their step, not their value, and the module that replays them decodes them then.
+        step_only = journalled and topic not in _MISSION_INPUTS and topic != "timing"
 
         def callback(sample: zenoh.Sample) -> None:
             try:
-                step, value = check_and_decode(topic, sample)
+                if step_only:
+                    step, value = stamp_of(topic, sample), None
+                else:
+                    step, value = check_and_decode(topic, sample)
             except MessageError as exc:
                 with self.inbox.cv:
                     self._dropped += 1
@@ -238,19 +244,26 @@ class ProcessSetTransport:
         return [e.as_dict() for e in self.supervisor.events]
 
     def finish(self, final: MissionStatus, failed: bool) -> None:
+        codes: dict[str, int | None] = {}
         try:
             self.clock.publish(final)
         finally:
-            if failed:
-                self.supervisor.kill_all()
-            codes = self.supervisor.shutdown()
-            self._token.undeclare()
-            for s in self._subs:
-                s.undeclare()
-            self.journal_server.close()
-            self.clock.close()
-            self._alive_sub.undeclare()
-            self.session.close()
+            try:
+                if failed:
+                    self.supervisor.kill_all()
+                codes = self.supervisor.shutdown()
+            finally:
+                # Whatever happened above, the session closes: a session left open keeps
+                # the mission process alive.
+                try:
+                    self._token.undeclare()
+                    for s in self._subs:
+                        s.undeclare()
+                    self.journal_server.close()
+                    self.clock.close()
+                    self._alive_sub.undeclare()
+                finally:
+                    self.session.close()
         bad = {n: c for n, c in codes.items() if c != 0}
         if bad and not failed:
             raise MissionFailed("modules did not exit cleanly: " + ", ".join(

@@ -201,6 +201,9 @@ def mission_config(cfg: StudyConfig, spec: RunSpec, run_dir: Path) -> MissionCon
 
 def _init_worker(threads: int) -> None:
     import torch
+
+    from rovergate.runtime import tune_allocator
+    tune_allocator()
     torch.set_num_threads(threads)
     logging.getLogger().setLevel(logging.WARNING)  # the study's log is the progress bar
 

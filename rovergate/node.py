@@ -41,6 +41,20 @@ def cdr_encoding(topic: str) -> zenoh.Encoding:
     return zenoh.Encoding.APPLICATION_CDR.with_schema(TOPICS[topic].msgtype)
 
 
+def stamp_of(topic: str, sample: zenoh.Sample) -> int:
+    """The planning step of a sample of ``topic``, read from its header without decoding the
+    rest (``header.stamp.sec``, the first field of every rovergate message, right after the
+    4-byte CDR encapsulation). Raises MessageError when the encoding or the bytes are not
+    a little-endian CDR message of the topic's type."""
+    want = str(cdr_encoding(topic))
+    if str(sample.encoding) != want:
+        raise MessageError(f"encoding is {str(sample.encoding)!r}, expected {want!r}")
+    head = sample.payload.to_bytes()[:8]
+    if len(head) < 8 or head[:2] != b"\x00\x01":
+        raise MessageError("not a little-endian CDR message")
+    return int.from_bytes(head[4:8], "little", signed=True)
+
+
 def check_and_decode(topic: str, sample: zenoh.Sample) -> tuple[int, Any]:
     """Decode a sample of ``topic``, checking its encoding first. Raises MessageError."""
     want = str(cdr_encoding(topic))

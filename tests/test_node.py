@@ -79,3 +79,32 @@ def test_node_drops_malformed_messages_and_runs_on(loopback_pair):
     assert node.dropped == 3
     # Step 0 needs no tick (lag 1); steps 1 and 2 need the ticks of steps 0 and 1.
     assert probe.handled == [(0, False), (1, True), (2, True)]
+
+
+class _Sample:
+    """What a zenoh sample offers a callback: an encoding and a payload."""
+
+    def __init__(self, topic: str, payload: bytes, encoding=None) -> None:
+        self.encoding = encoding if encoding is not None else cdr_encoding(topic)
+        self.payload = type("P", (), {"to_bytes": lambda _self: payload})()
+
+
+def test_the_step_of_a_journalled_message_is_read_from_its_header():
+    """The mission reads only the step of what it merely journals; it is the step decode
+    gives, and bytes that are not the topic's CDR are refused as decode refuses them."""
+    import numpy as np
+    import pytest
+
+    from rovergate.messages import MessageError, decode
+    from rovergate.node import stamp_of
+    from rovergate.types import CameraIntrinsics
+    values = {"depth": (7, np.ones((4, 5), np.float32)),
+              "camera_info": (8, CameraIntrinsics.from_fov(160, 120, 45.0)),
+              "pose": (9, Pose.from_xyz_yaw(1, 2, 3, 0.5))}
+    for topic, value in values.items():
+        payload = encode(topic, value)
+        assert stamp_of(topic, _Sample(topic, payload)) == decode(topic, payload)[0] == value[0]
+    with pytest.raises(MessageError, match="encoding"):
+        stamp_of("depth", _Sample("pose", encode("pose", values["pose"])))
+    with pytest.raises(MessageError, match="CDR"):
+        stamp_of("depth", _Sample("depth", b"\x01\x00"))
