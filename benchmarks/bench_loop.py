@@ -65,6 +65,10 @@ def main() -> None:
     print(f"total wall time (with start-up and shutdown): in-process "
           f"{total['in-process']:.2f} s, processes {total['processes']:.2f} s, ratio "
           f"{total['processes'] / total['in-process']:.3f}")
+    startup = {m: statistics.median(t - w for t, w, _ in rows[m]) for m in rows}
+    print(f"start-up and shutdown (total minus loop): in-process {startup['in-process']:.2f} s, "
+          f"processes {startup['processes']:.2f} s, the process set's extra "
+          f"{startup['processes'] - startup['in-process']:.2f} s")
     same = all(rows["processes"][i][2].coverage == rows["in-process"][i][2].coverage
                for i in range(args.rounds))
     print(f"identical per-step coverage in both modes: {same}")

@@ -29,12 +29,14 @@ from mission.supervisor import RestartEvent
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, from_dict, to_dict
 from rovergate.errors import UnknownNameError
+from rovergate.graph import readers
 from rovergate.types import CommandAck, MissionStatus, Pose
 
 log = logging.getLogger("rovergate.operations")
 
-#: Config sections the ground may change in flight, and the modules that then restart.
-SETTABLE = {"gate": ("gate",), "planner": ("planner",)}
+#: Config sections the ground may change in flight; the modules built from them restart
+#: (:func:`rovergate.graph.readers`).
+SETTABLE = ("gate", "planner")
 
 
 class CommandError(ValueError):
@@ -62,7 +64,7 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
         if type(value) is not type(old):
             raise CommandError(f"{key} takes a {type(old).__name__}, got {raw!r}")
         data[section][name] = value
-        modules.update(SETTABLE[section])
+        modules.update(readers(section))
     return from_dict(MissionConfig, data), modules
 
 
@@ -172,6 +174,8 @@ class Operations:
         if verb == "abort":
             self.abort = True
             return f"aborted before step {step}"
+        if verb in ("condition", "planner") and not args:
+            raise CommandError(f"{verb} needs an argument (e.g. condition gated, planner beam)")
         if verb == "set":
             cfg, modules = apply_settings(self.cfg, args)
         elif verb == "condition":
@@ -179,7 +183,8 @@ class Operations:
                 get_condition(args[0])
             except UnknownNameError as exc:
                 raise CommandError(str(exc)) from None
-            cfg, modules = dataclasses.replace(self.cfg, condition=args[0]), {"mapper", "gate"}
+            cfg = dataclasses.replace(self.cfg, condition=args[0])
+            modules = set(readers("condition"))
         elif verb == "planner":
             if args[0] == "cmd":
                 if len(args) < 2:
@@ -191,7 +196,7 @@ class Operations:
                     raise CommandError(f"unknown planner {args[0]!r}; one of: auto, "
                                        f"{', '.join(PLANNERS)}, or cmd <command line>")
                 planner = dataclasses.replace(self.cfg.planner, name=args[0], command="")
-            cfg, modules = dataclasses.replace(self.cfg, planner=planner), {"planner"}
+            cfg, modules = dataclasses.replace(self.cfg, planner=planner), set(readers("planner"))
         else:
             raise CommandError(f"unknown verb {verb!r}")
         t0 = time.monotonic()

@@ -20,8 +20,8 @@ class UnknownNameError(ConfigError):
     planner); the message lists the valid ones."""
 
 
-class CheckpointError(RovergateError):
-    """The occupancy model's checkpoint is missing or unreadable."""
+class CheckpointError(ConfigError):
+    """The occupancy model's checkpoint is missing or unreadable (a bad file: exit code 2)."""
 
 
 class TransportError(RovergateError):

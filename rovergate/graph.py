@@ -117,6 +117,9 @@ class Module:
     """Queryables it answers."""
     asks: tuple[str, ...] = ()
     """Queryables it may ask (the gate asks for truth in the oracle conditions only)."""
+    reads: tuple[str, ...] = ()
+    """The mission settings (top-level fields and sections of the config) it is built from:
+    a change of one of them in flight restarts it (:mod:`mission.operations`)."""
     last_step_offset: int = 0
     """The last step it handles is ``steps + last_step_offset`` (the gate and the planner
     have nothing to do after the last pose)."""
@@ -138,20 +141,25 @@ MODULES: dict[str, Module] = {m.name: m for m in [
            inputs={"tick": Input("status"), "path": Input("path", lag=1)},
            outputs=("execution", "depth", "camera_info", "pose", "base_pose"),
            stages=("execute", "render"), replay=("path",),
-           serves=("truth_surface", "truth_occupancy")),
+           serves=("truth_surface", "truth_occupancy"),
+           reads=("scene", "platform", "start", "seed", "sensor", "sensing", "rover", "flyer",
+                  "eval")),
     Module("mapper", "the mapper: depth into S_t, and the learned prediction",
            inputs={"depth": Input("depth"), "info": Input("camera_info"),
                    "pose": Input("pose"), "base": Input("base_pose")},
            outputs=("surface", "predicted"), stages=("integrate",),
-           replay=("depth", "info", "pose", "base")),
+           replay=("depth", "info", "pose", "base"), reads=("condition", "scene", "mapper")),
     Module("gate", "the gate: the planner-facing occupancy of the mission's condition",
            inputs={"surface": Input("surface"), "predicted": Input("predicted"),
                    "pose": Input("pose"), "info": Input("camera_info")},
            outputs=("planner_map",), stages=("gate",), replay=("pose", "info"),
-           asks=("truth_occupancy",), last_step_offset=-1),
+           asks=("truth_occupancy",), reads=("condition", "scene", "gate", "sensor", "mapper"),
+           last_step_offset=-1),
     Module("planner", "the planner: the next motion from the planner-facing map",
            inputs={"map": Input("planner_map"), "base": Input("base_pose")},
-           outputs=("path",), stages=("plan",), last_step_offset=-1),
+           outputs=("path",), stages=("plan",),
+           reads=("platform", "seed", "sensor", "rover", "flyer", "planner", "mapper"),
+           last_step_offset=-1),
     Module("mission", "the mission manager: the clock, coverage, the record, the ground link",
            inputs={"path": Input("path", lag=1), "execution": Input("execution", lag=1),
                    "predicted": Input("predicted", lag=1),
@@ -167,6 +175,12 @@ LAUNCHED: tuple[str, ...] = tuple(m.name for m in MODULES.values() if m.launched
 def stage_module() -> dict[str, str]:
     """Which module reports each timing stage."""
     return {stage: m.name for m in MODULES.values() for stage in m.stages}
+
+
+def readers(setting: str) -> tuple[str, ...]:
+    """The launched modules built from mission setting ``setting`` (a top-level config field
+    or section): what restarts when it changes in flight."""
+    return tuple(m.name for m in MODULES.values() if m.launched and setting in m.reads)
 
 
 def journal_topics() -> tuple[frozenset[str], frozenset[str]]:

@@ -31,6 +31,9 @@ def test_the_graph_is_consistent_and_everything_derives_from_it():
     assert {"surface", "predicted", "planner_map"} == KEEP_LAST
     assert {m.name: m.progress for m in graph.MODULES.values() if m.launched} == {
         "sim": "base_pose", "mapper": "predicted", "gate": "planner_map", "planner": "path"}
+    # What a ground command restarts is what is built from the setting it changes.
+    assert graph.readers("condition") == ("mapper", "gate")
+    assert graph.readers("gate") == ("gate",) and graph.readers("planner") == ("planner",)
     # Every topic a module reads has exactly one producer in the graph.
     for m in graph.MODULES.values():
         for i in m.inputs.values():
