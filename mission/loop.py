@@ -14,6 +14,7 @@ import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from scipy.spatial import cKDTree
 
@@ -26,13 +27,16 @@ from rovergate.geometry import voxel_first_points
 from rovergate.module import STOP
 from rovergate.types import MissionStatus, Source, xyz
 
+if TYPE_CHECKING:
+    from mission.operations import Operations
+
 log = logging.getLogger("rovergate.mission")
 
 OnStep = Callable[[int, float], None]
 
 
 def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None = None,
-                operations_factory: Callable[[], object] | None = None) -> MissionRecord:
+                operations_factory: Callable[[], Operations] | None = None) -> MissionRecord:
     """Run ``cfg.steps`` planning steps over ``transport``; ``on_step(t, coverage)`` is called
     after each pose. ``operations_factory`` (process set only) builds the ground link's
     :class:`mission.operations.Operations`. Raises :class:`rovergate.errors.MissionFailed` on

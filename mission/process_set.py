@@ -40,7 +40,7 @@ from rovergate.config import MissionConfig, save_config
 from rovergate.errors import MissionFailed
 from rovergate.graph import LAUNCHED, MODULES
 from rovergate.keys import Keys
-from rovergate.messages import MessageError
+from rovergate.messages import MessageError, prepare
 from rovergate.module import STOP
 from rovergate.node import check_and_decode, stamp_of
 from rovergate.session import free_loopback_port, open_session
@@ -68,6 +68,7 @@ class ProcessSetTransport:
                                           listen=(self.endpoint, *cfg.session.listen))
         self.session = open_session(session_cfg)
         self.journal = Journal()
+        prepare({*_MISSION_INPUTS, *self.journal.topics, *MODULES["mission"].asks, "timing"})
         watched = set(_MISSION_INPUTS) | {"timing"}
         self.inbox = Inbox(watched - {"timing"})
         self._timings: dict[tuple[str, int], StepTiming] = {}

@@ -28,7 +28,7 @@ from rovergate.config import SessionConfig
 from rovergate.errors import TransportError
 from rovergate.graph import TOPICS, Module
 from rovergate.keys import Keys
-from rovergate.messages import MessageError, decode, encode
+from rovergate.messages import MessageError, decode, encode, prepare
 from rovergate.module import STOP, ModuleLogic, StepOutput
 from rovergate.session import open_session
 from rovergate.types import StepTiming
@@ -81,6 +81,8 @@ class ModuleNode:
         self._lock = threading.Lock()
         self._token: zenoh.LivelinessToken | None = None
         self.session = open_session(session_cfg)
+        prepare({*self.spec.outputs, *self.spec.serves, *self.spec.asks, "timing", "status",
+                 *(i.topic for i in self.inputs.values())})
         # BLOCK, not zenoh's default DROP: in lockstep every message is awaited, and DROP
         # discards a sample when a link's queue is full (a subscriber busy for a moment), which
         # lost the mission's copy of a step's prediction while the gate got its own.
