@@ -56,9 +56,9 @@ class Gate:
             raise ValueError(f"condition {condition!r} needs the reference occupancy")
         self.reference_xyz = reference_xyz
         self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
-        self.delta_m = cfg.oracle_delta_frac * d_scene_m
+        self.delta_m = cfg.oracle_delta_m(d_scene_m)
         self.observed_radius_m = observed_radius_m
-        self.filter = ObservationGate(cfg.k, cfg.epsilon_frac * d_scene_m, sensor.min_range_m,
+        self.filter = ObservationGate(cfg.k, cfg.epsilon_m(d_scene_m), sensor.min_range_m,
                                       sensor.max_range_m)
 
     def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics) -> None:

@@ -11,13 +11,13 @@ from gate.gate import Gate
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig
 from rovergate.graph import MODULES, Module
-from rovergate.module import Ask, StatelessLogic, StepOutput
+from rovergate.module import Ask, LogicDefaults, StepOutput
 from rovergate.types import MapperOutput, xyz
 
 log = logging.getLogger("rovergate.gate")
 
 
-class GateNode(StatelessLogic):
+class GateNode(LogicDefaults):
     """:class:`rovergate.module.ModuleLogic` of the gate."""
 
     spec: ClassVar[Module] = MODULES["gate"]

@@ -9,11 +9,11 @@ from typing import Any, ClassVar
 from mapper.mapper import Mapper
 from rovergate.config import MissionConfig
 from rovergate.graph import MODULES, Module
-from rovergate.module import Ask, StatelessLogic, StepOutput
+from rovergate.module import Ask, LogicDefaults, StepOutput
 from rovergate.types import SensorFrame
 
 
-class MapperNode(StatelessLogic):
+class MapperNode(LogicDefaults):
     """:class:`rovergate.module.ModuleLogic` of the mapper."""
 
     spec: ClassVar[Module] = MODULES["mapper"]

@@ -27,9 +27,10 @@ import numpy as np
 from mission.bridge import Delivered, GroundBridge
 from mission.supervisor import RestartEvent
 from rovergate.conditions import get_condition
-from rovergate.config import MissionConfig, from_dict, to_dict
-from rovergate.errors import UnknownNameError
+from rovergate.config import MissionConfig, check_values, from_dict, to_dict
+from rovergate.errors import ConfigError, UnknownNameError
 from rovergate.graph import readers
+from rovergate.module import STOP
 from rovergate.types import CommandAck, MissionStatus, Pose
 
 log = logging.getLogger("rovergate.operations")
@@ -65,7 +66,12 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
             raise CommandError(f"{key} takes a {type(old).__name__}, got {raw!r}")
         data[section][name] = value
         modules.update(readers(section))
-    return from_dict(MissionConfig, data), modules
+    new = from_dict(MissionConfig, data)
+    try:
+        check_values(new)  # a value no module can run with is refused, not restarted on
+    except ConfigError as exc:
+        raise CommandError(str(exc)) from None
+    return new, modules
 
 
 class MissionControl(Protocol):
@@ -131,6 +137,8 @@ class Operations:
         self._handle(step, self.bridge.tick())
         last_keepalive = 0.0
         while self.paused and not self.abort:
+            if STOP.is_set():  # Ctrl-C or SIGTERM while the ground holds the rover
+                raise KeyboardInterrupt
             if time.monotonic() - last_keepalive > 1.0:
                 # Modules stop when no input comes for long; "paused" tells them to wait on.
                 self.control.publish_status(MissionStatus(step, self.cfg.steps, "paused",
@@ -237,7 +245,7 @@ class Operations:
         idle = 0
         t0 = time.monotonic()
         while self.bridge.station_connected and not self.bridge.settled and \
-                idle < self.cfg.contact.drain_steps:
+                idle < self.cfg.contact.drain_steps and not STOP.is_set():
             self.bridge.tick()
             idle += 1
             time.sleep(self.cfg.contact.idle_step_wall_s)

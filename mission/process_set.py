@@ -37,7 +37,7 @@ from mission.inbox import Inbox
 from mission.journal import Journal, JournalServer
 from mission.supervisor import ProcessSupervisor, RestartEvent
 from rovergate.config import MissionConfig, save_config
-from rovergate.errors import MissionFailed
+from rovergate.errors import ConfigError, MissionFailed
 from rovergate.graph import LAUNCHED, MODULES
 from rovergate.keys import Keys
 from rovergate.messages import MessageError, prepare
@@ -63,10 +63,34 @@ class ProcessSetTransport:
         self._cfg = cfg
         self.out = out
         self.keys = Keys(cfg.session.namespace)
-        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-        session_cfg = dataclasses.replace(cfg.session, mode="peer", wait_for_peers=0,
-                                          listen=(self.endpoint, *cfg.session.listen))
-        self.session = open_session(session_cfg)
+        self.endpoint, self.session = self._open_session(cfg)
+        try:
+            self._declare(cfg, out)
+        except BaseException:
+            self.session.close()
+            raise
+
+    @staticmethod
+    def _open_session(cfg: MissionConfig) -> tuple[str, zenoh.Session]:
+        """The mission's peer session on a free loopback port (the modules connect to it),
+        plus any ``--listen`` endpoints. A port free a moment ago may be taken by another
+        mission starting at the same moment: then another one (zenoh does not say which port
+        it bound for port 0)."""
+        failure = ""
+        for _ in range(5):
+            endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+            session_cfg = dataclasses.replace(cfg.session, mode="peer", wait_for_peers=0,
+                                              listen=(endpoint, *cfg.session.listen))
+            try:
+                return endpoint, open_session(session_cfg)
+            except ConfigError as exc:
+                if cfg.session.listen:  # a --listen endpoint the user chose: say so at once
+                    raise
+                failure = str(exc)
+        raise ConfigError(f"no free loopback port for the mission's session in 5 tries "
+                          f"(last: {failure})")
+
+    def _declare(self, cfg: MissionConfig, out: Path) -> None:
         self.journal = Journal()
         prepare({*_MISSION_INPUTS, *self.journal.topics, *MODULES["mission"].asks, "timing"})
         watched = set(_MISSION_INPUTS) | {"timing"}

@@ -15,7 +15,7 @@ from mission.report import write_report
 from planner.planner import PLANNERS, planner_name
 from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.conditions import get_condition
-from rovergate.config import MissionConfig, save_config, to_dict
+from rovergate.config import MissionConfig, check_values, save_config, to_dict
 from rovergate.errors import ConfigError, MissionFailed, UnknownNameError
 from rovergate.geometry import check_platform
 from rovergate.logs import init_logging
@@ -35,20 +35,8 @@ def check_runnable(cfg: MissionConfig) -> None:
     if not cfg.planner.command and planner_name(cfg) not in PLANNERS:
         raise UnknownNameError(f"unknown planner {cfg.planner.name!r}; choose one of: auto, "
                                f"{', '.join(PLANNERS)} (--planner.name)")
+    check_values(cfg)
     mission_checkpoint(cfg)  # a bad --mapper.prediction or checkpoint stops the mission here
-    for flag, value, least in (("--steps", cfg.steps, 1), ("--max-restarts", cfg.max_restarts, 0),
-                               ("--gate.k", cfg.gate.k, 1),
-                               ("--sensor.width-px", cfg.sensor.width_px, 8),
-                               ("--sensor.height-px", cfg.sensor.height_px, 8),
-                               ("--planner.n-candidates", cfg.planner.n_candidates, 1)):
-        if value < least:
-            raise ConfigError(f"{flag} must be at least {least}, got {value}")
-    for flag, value in (("--ready-timeout-s", cfg.ready_timeout_s),
-                        ("--step-timeout-s", cfg.step_timeout_s),
-                        ("--planner.max-step-m", cfg.planner.max_step_m),
-                        ("--mapper.voxel-m", cfg.mapper.voxel_m)):
-        if not value > 0:
-            raise ConfigError(f"{flag} must be positive, got {value}")
     if cfg.in_process and cfg.planner.command:
         raise ConfigError("--planner.command runs a planner program, which needs the "
                           "process set; leave out --in-process")

@@ -172,6 +172,12 @@ def check_study(cfg: StudyConfig) -> StudyConfig:
             if s not in scene.starts:
                 raise ConfigError(f"scene {name!r} has no start {s!r}; its starts are "
                                   f"{', '.join(scene.starts)}")
+    # Every other setting as a run of each condition gets it (platform, planner, checkpoint,
+    # counts and ranges): refused here, not once per run by the workers.
+    from mission.run import check_runnable
+    for c in conditions:
+        check_runnable(mission_config(cfg, RunSpec(cfg.scenes[0], cfg.starts[0], c, 0),
+                                      Path(cfg.out)))
     workers = cfg.workers or os.cpu_count() or 1
     return replace(cfg, conditions=conditions, workers=workers)
 

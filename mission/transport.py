@@ -84,7 +84,9 @@ class InProcessTransport:
     def start(self) -> None:
         from mission.modules import make_logic
         try:
-            for name in LAUNCHED:
+            # Modules that serve queryables first: the others may ask them while being built
+            # (the gate asks the simulator for the reference occupancy).
+            for name in sorted(LAUNCHED, key=lambda m: not MODULES[m].serves):
                 self.logic[name] = make_logic(name, self.cfg, self.ask)
         except BaseException:
             self._close()

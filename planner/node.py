@@ -10,12 +10,12 @@ from typing import Any, ClassVar
 from planner.planner import make_planner
 from rovergate.config import MissionConfig
 from rovergate.graph import MODULES, Module
-from rovergate.module import Ask, StatelessLogic, StepOutput
+from rovergate.module import Ask, LogicDefaults, StepOutput
 
 log = logging.getLogger("rovergate.planner")
 
 
-class PlannerNode(StatelessLogic):
+class PlannerNode(LogicDefaults):
     """:class:`rovergate.module.ModuleLogic` of the planner. It keeps no state between steps
     (its random draws are seeded by seed and step): a restarted one needs only the inputs of
     the step it resumes at."""

@@ -12,7 +12,8 @@ import pybullet as pb
 
 from rover_sim.scene import Scene
 from rovergate.config import RoverConfig, SensorConfig
-from rovergate.types import CameraIntrinsics, matrix_to_quat
+from rovergate.geometry import matrix_to_quat
+from rovergate.types import CameraIntrinsics
 
 NEAR_M = 0.05
 EYE_NUDGE_M = np.array([1.13e-4, 0.71e-4, 0.37e-4])

@@ -174,6 +174,15 @@ class GateConfig:
     oracle_delta_frac: float = 0.03
     """Oracle tagging tolerance as a fraction of d_scene (paper: 0.03)."""
 
+    def epsilon_m(self, d_scene_m: float) -> float:
+        """The support radius epsilon of equation 4, in metres."""
+        return self.epsilon_frac * d_scene_m
+
+    def oracle_delta_m(self, d_scene_m: float) -> float:
+        """The oracle tagging tolerance delta, in metres (false positives and negatives, and
+        the evaluator's audit of what the gate withheld)."""
+        return self.oracle_delta_frac * d_scene_m
+
 
 @dataclass
 class PlannerConfig:
@@ -325,19 +334,51 @@ class MissionConfig:
 
     @property
     def oracle_delta_m(self) -> float:
-        """Oracle tagging tolerance delta (false positives and negatives, the gate audit)."""
-        return self.gate.oracle_delta_frac * self.scene.d_scene_m
-
-    @property
-    def epsilon_m(self) -> float:
-        """The gate's support radius epsilon (equation 4)."""
-        return self.gate.epsilon_frac * self.scene.d_scene_m
+        """Oracle tagging tolerance delta of this mission's scene, in metres."""
+        return self.gate.oracle_delta_m(self.scene.d_scene_m)
 
     @property
     def observed_radius_m(self) -> float:
         """How near a well-observed S_t point must be for a map point to count as observed:
         1.5 mapper voxels (the planner's gain, and the views a truth point borrows)."""
         return 1.5 * self.mapper.voxel_m
+
+
+def check_values(cfg: MissionConfig) -> None:
+    """Raise :class:`ConfigError` (one line, naming the flag) for a count, limit or range no
+    mission can run with. Names (scene, start, condition, planner) are checked where their
+    registries live (:func:`mission.run.check_runnable`)."""
+    for flag, value, least in (
+            ("--steps", cfg.steps, 1), ("--max-restarts", cfg.max_restarts, 0),
+            ("--gate.k", cfg.gate.k, 1), ("--sensor.width-px", cfg.sensor.width_px, 8),
+            ("--sensor.height-px", cfg.sensor.height_px, 8),
+            ("--planner.n-candidates", cfg.planner.n_candidates, 1),
+            ("--planner.beam-width", cfg.planner.beam_width, 1),
+            ("--planner.beam-depth", cfg.planner.beam_depth, 1),
+            ("--planner.max-attempts", cfg.planner.max_attempts, 1),
+            ("--planner.ompl-max-checks", cfg.planner.ompl_max_checks, 1),
+            ("--eval.n-samples", cfg.eval.n_samples, 1)):
+        if value < least:
+            raise ConfigError(f"{flag} must be at least {least}, got {value}")
+    for flag, value in (
+            ("--ready-timeout-s", cfg.ready_timeout_s), ("--step-timeout-s", cfg.step_timeout_s),
+            ("--gate.epsilon-frac", cfg.gate.epsilon_frac),
+            ("--gate.oracle-delta-frac", cfg.gate.oracle_delta_frac),
+            ("--eval.tau-frac", cfg.eval.tau_frac), ("--mapper.voxel-m", cfg.mapper.voxel_m),
+            ("--planner.max-step-m", cfg.planner.max_step_m),
+            ("--planner.gain-voxel-m", cfg.planner.gain_voxel_m),
+            ("--planner.gain-resolution", cfg.planner.gain_resolution),
+            ("--planner.segment-check-m", cfg.planner.segment_check_m),
+            ("--rover.check-spacing-m", cfg.rover.check_spacing_m),
+            ("--sensor.min-range-m", cfg.sensor.min_range_m)):
+        if not value > 0:
+            raise ConfigError(f"{flag} must be positive, got {value}")
+    if not cfg.sensor.max_range_m > cfg.sensor.min_range_m:
+        raise ConfigError(f"--sensor.max-range-m ({cfg.sensor.max_range_m}) must exceed "
+                          f"--sensor.min-range-m ({cfg.sensor.min_range_m})")
+    if not 0 < cfg.sensor.vfov_deg < 180:
+        raise ConfigError(f"--sensor.vfov-deg must be between 0 and 180, got "
+                          f"{cfg.sensor.vfov_deg}")
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

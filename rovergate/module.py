@@ -69,8 +69,10 @@ class ModuleLogic(Protocol):
         ...
 
 
-class StatelessLogic:
-    """Defaults for a module that keeps no state and serves nothing."""
+class LogicDefaults:
+    """Defaults of :class:`ModuleLogic`: nothing to replay (a module that keeps no state
+    between steps; a stateful one overrides :meth:`restore`), nothing served, nothing to
+    release."""
 
     def restore(self, step: int, inputs: dict[str, Any]) -> None:
         return None

@@ -44,8 +44,9 @@ def cdr_encoding(topic: str) -> zenoh.Encoding:
 def stamp_of(topic: str, sample: zenoh.Sample) -> int:
     """The planning step of a sample of ``topic``, read from its header without decoding the
     rest (``header.stamp.sec``, the first field of every rovergate message, right after the
-    4-byte CDR encapsulation). Raises MessageError when the encoding or the bytes are not
-    a little-endian CDR message of the topic's type."""
+    4-byte CDR encapsulation). Raises MessageError when the sample's encoding is not the
+    topic's or the bytes do not start as little-endian CDR; the rest of the message is not
+    checked (the module that replays it decodes it, and drops it if it is malformed)."""
     want = str(cdr_encoding(topic))
     if str(sample.encoding) != want:
         raise MessageError(f"encoding is {str(sample.encoding)!r}, expected {want!r}")

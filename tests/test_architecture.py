@@ -15,7 +15,7 @@ from mission.journal import KEEP_ALL, KEEP_LAST
 from mission.run import check_runnable
 from mission.transport import InProcessTransport
 from rovergate import graph
-from rovergate.config import MissionConfig
+from rovergate.config import GateConfig, MissionConfig, SensorConfig
 from rovergate.errors import CheckpointError, ConfigError, UnknownNameError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,6 +38,15 @@ def test_the_graph_is_consistent_and_everything_derives_from_it():
     for m in graph.MODULES.values():
         for i in m.inputs.values():
             assert graph.producer(i.topic) is not None
+
+
+def test_every_launched_module_has_its_logic():
+    from mission.modules import LOGIC, make_logic  # noqa: F401 (the table is the check)
+    assert tuple(LOGIC) == graph.LAUNCHED
+    import importlib
+    for name, where in LOGIC.items():
+        module, _, cls = where.partition(":")
+        assert getattr(importlib.import_module(module), cls).spec is graph.MODULES[name]
 
 
 def test_a_broken_declaration_is_refused(monkeypatch):
@@ -77,6 +86,9 @@ def _cfg(**kw) -> MissionConfig:
     ({"steps": 0}, ConfigError, "--steps must be at least 1"),
     ({"max_restarts": -1}, ConfigError, "--max-restarts must be at least 0"),
     ({"step_timeout_s": 0.0}, ConfigError, "--step-timeout-s must be positive"),
+    ({"gate": GateConfig(epsilon_frac=0.0)}, ConfigError, "--gate.epsilon-frac must be positive"),
+    ({"sensor": SensorConfig(min_range_m=5.0, max_range_m=2.0)}, ConfigError,
+     "--sensor.max-range-m .* must exceed"),
 ])
 def test_bad_settings_are_refused_before_anything_starts(change, error, match):
     with pytest.raises(error, match=match):

@@ -256,6 +256,11 @@ def test_settings_change_in_flight_only_where_allowed():
         apply_settings(MissionConfig(), ["sensor.width_px=640"])
     with pytest.raises(CommandError, match="gate.k takes a int"):
         apply_settings(MissionConfig(), ["gate.k=three"])
+    # A value no module can run with is refused, not restarted on until the mission fails.
+    with pytest.raises(CommandError, match="--gate.k must be at least 1, got 0"):
+        apply_settings(MissionConfig(), ["gate.k=0"])
+    with pytest.raises(CommandError, match="--gate.epsilon-frac must be positive"):
+        apply_settings(MissionConfig(), ["gate.epsilon_frac=0"])
 
 
 # --- end to end: the process set, the bridge and a ground station, in Zenoh peer mode ------

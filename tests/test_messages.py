@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rovergate.keys import TOPICS
+from rovergate.graph import TOPICS
 from rovergate.messages import TYPESTORE, MessageError, decode, decode_item, encode, encode_item
 from rovergate.types import (
     PLANNER_DTYPE,

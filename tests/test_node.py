@@ -10,7 +10,7 @@ from conftest import Waiter
 from rovergate.config import SessionConfig
 from rovergate.graph import Input, Module
 from rovergate.messages import encode
-from rovergate.module import StatelessLogic, StepOutput
+from rovergate.module import LogicDefaults, StepOutput
 from rovergate.node import ModuleNode, cdr_encoding
 from rovergate.types import MissionStatus, Pose
 
@@ -20,7 +20,7 @@ SPEC = Module("probe", "a test module", inputs={"base": Input("base_pose"),
               outputs=("path",))
 
 
-class Probe(StatelessLogic):
+class Probe(LogicDefaults):
     spec = SPEC
 
     def __init__(self, waiter: Waiter) -> None:

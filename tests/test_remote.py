@@ -11,10 +11,15 @@ import sys
 import warnings
 from pathlib import Path
 
+import pytest
+
 from rovergate.session import free_loopback_port
 
 ROVERGATE = [sys.executable, "-m", "mission.cli"]
 SUBSCRIBER = Path(__file__).resolve().parent.parent / "examples" / "remote_subscriber.py"
+
+
+pytestmark = pytest.mark.e2e
 
 
 def _sh(*cmd: str) -> subprocess.CompletedProcess:

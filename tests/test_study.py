@@ -8,6 +8,7 @@ import json
 import os
 import signal
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -216,6 +217,18 @@ def test_study_refuses_mission_flags_that_only_the_process_set_reads(flag):
     with pytest.raises(StudyFlagError, match="has no effect on a study: every run is in one "
                                              "process"):
         refuse_owned_mission_flags([flag, "3"])
+
+
+def test_study_checks_every_mission_setting_before_any_run(tmp_path: Path):
+    from mission.study import check_study
+    from rovergate.errors import ConfigError, UnknownNameError
+    base = StudyConfig(scenes=("arch_field",), starts=("a",), conditions=("obs",), steps=2,
+                       out=tmp_path)
+    with pytest.raises(UnknownNameError, match="unknown platform 'boat'"):
+        check_study(replace(base, platform="boat"))
+    bad_gate = replace(base.mission, gate=replace(base.mission.gate, k=0))
+    with pytest.raises(ConfigError, match="--gate.k must be at least 1"):
+        check_study(replace(base, mission=bad_gate))
 
 
 def test_study_lets_every_other_mission_flag_through():
