@@ -167,8 +167,12 @@ def test_ground_sends_every_command_given(args, commands):
     assert tyro.cli(GroundConfig, args=args).commands == commands
 
 
+#: An endpoint that is only parsed here, never opened or connected to.
+PARSED_ONLY = "tcp/rover.invalid:7448"
+
+
 def _link_file(mission: Path, **fields) -> None:
-    link = {"endpoints": ["tcp/127.0.0.1:40001"], "ground_namespace": "earth",
+    link = {"endpoints": [PARSED_ONLY], "ground_namespace": "earth",
             "rover_namespace": "rover", "pid": os.getpid(), "host": socket.gethostname(),
             "started_at": "2025-01-01T00:00:00+00:00", **fields}
     mission.mkdir(exist_ok=True)
@@ -179,9 +183,9 @@ def test_ground_finds_the_link_in_the_missions_directory(tmp_path: Path):
     assert GroundConfig().mission == MissionConfig().out  # `rovergate run`'s default --out
     _link_file(tmp_path)
     cfg = resolve_link(GroundConfig(mission=tmp_path))
-    assert (cfg.connect, cfg.namespace) == (("tcp/127.0.0.1:40001",), "earth")
-    given = resolve_link(GroundConfig(mission=tmp_path, connect=("tcp/10.0.0.2:7448",)))
-    assert (given.connect, given.namespace) == (("tcp/10.0.0.2:7448",), "ground")  # it wins
+    assert (cfg.connect, cfg.namespace) == ((PARSED_ONLY,), "earth")
+    given = resolve_link(GroundConfig(mission=tmp_path, connect=("tcp/ground.invalid:7448",)))
+    assert (given.connect, given.namespace) == (("tcp/ground.invalid:7448",), "ground")  # wins
     assert resolve_link(GroundConfig(mission=tmp_path, namespace="mars")).namespace == "mars"
 
 
@@ -195,7 +199,7 @@ def _dead_pid() -> int:
     (None, "does not exist"),
     ("{not json", "cannot be read as JSON"),
     ('{"endpoints": [], "ground_namespace": "ground"}', "is not a mission's ground link file"),
-    ('["tcp/127.0.0.1:40001"]', "is not a mission's ground link file"),
+    ('["tcp/rover.invalid:7448"]', "is not a mission's ground link file"),
     ("dead", "no longer running"),
 ])
 def test_ground_without_a_usable_link_file_says_so_in_one_line(tmp_path: Path, content, why):
