@@ -38,7 +38,7 @@ from mission.journal import Journal, JournalServer
 from mission.supervisor import ProcessSupervisor, RestartEvent
 from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed
-from rovergate.graph import LAUNCHED, MODULES
+from rovergate.graph import LAUNCHED, MODULES, stage_module
 from rovergate.keys import Keys
 from rovergate.messages import MessageError, prepare
 from rovergate.module import STOP
@@ -259,11 +259,15 @@ class ProcessSetTransport:
             return list(self._timings.values())
 
     def dropped(self) -> int:
+        """The mission's own drops, plus each module's: a module reports its running count
+        with every stage timing, so each module counts once, with its largest count."""
+        stages = stage_module()
+        by_module: dict[str, int] = {}
         with self.inbox.cv:
-            module_drops: dict[str, int] = {}
             for t in self._timings.values():
-                module_drops[t.module] = max(module_drops.get(t.module, 0), t.dropped_total)
-        return self._dropped + _per_module(module_drops)
+                module = stages.get(t.module, t.module)  # StepTiming.module holds the stage
+                by_module[module] = max(by_module.get(module, 0), t.dropped_total)
+            return self._dropped + sum(by_module.values())
 
     def restarts(self) -> list[dict[str, Any]]:
         return [e.as_dict() for e in self.supervisor.events]
@@ -294,14 +298,3 @@ class ProcessSetTransport:
             raise MissionFailed("modules did not exit cleanly: " + ", ".join(
                 f"{n} (exit code {c})" for n, c in bad.items()))
 
-
-def _per_module(stage_drops: dict[str, int]) -> int:
-    """Each module reports its running count of dropped messages with every stage timing:
-    the mission's total counts each module once (its largest count over its stages)."""
-    from rovergate.graph import stage_module
-    stages = stage_module()
-    by_module: dict[str, int] = {}
-    for stage, n in stage_drops.items():
-        module = stages.get(stage, stage)
-        by_module[module] = max(by_module.get(module, 0), n)
-    return sum(by_module.values())

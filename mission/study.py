@@ -172,10 +172,12 @@ def check_study(cfg: StudyConfig) -> StudyConfig:
             if s not in scene.starts:
                 raise ConfigError(f"scene {name!r} has no start {s!r}; its starts are "
                                   f"{', '.join(scene.starts)}")
-    # Every other setting as a run of each condition gets it (platform, planner, checkpoint,
-    # counts and ranges): refused here, not once per run by the workers.
+    # Every other setting as the runs get it (platform, planner, checkpoint, counts and
+    # ranges): refused here, not once per run by the workers. Runs differ only by condition,
+    # and conditions only by whether they run the model: one check of each kind.
     from mission.run import check_runnable
-    for c in conditions:
+    kinds = {get_condition(c).needs_prediction: c for c in reversed(conditions)}
+    for c in kinds.values():
         check_runnable(mission_config(cfg, RunSpec(cfg.scenes[0], cfg.starts[0], c, 0),
                                       Path(cfg.out)))
     workers = cfg.workers or os.cpu_count() or 1

@@ -102,13 +102,10 @@ class InProcessTransport:
             progress = False
             for name, logic in self.logic.items():
                 step, spec = self._next[name], logic.spec
-                if step > spec.last_step(self.cfg.steps) or any(
-                        step - i.lag >= 0 and step - i.lag not in self._buffers[name][n]
-                        for n, i in spec.inputs.items()):
+                buffers = self._buffers[name]
+                if step > spec.last_step(self.cfg.steps) or spec.missing(step, buffers):
                     continue
-                inputs = {n: self._buffers[name][n].pop(step - i.lag, None)
-                          for n, i in spec.inputs.items()}
-                out = logic.handle(step, inputs)
+                out = logic.handle(step, spec.take(step, buffers))
                 self._timings += [StepTiming(step, stage, s, 0) for stage, s in out.stages.items()]
                 for topic, value in out.messages:
                     self._deliver(topic, value)

@@ -21,7 +21,7 @@ Run ``python -m rovergate.graph`` to print the topic table.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 #: The rover's network (its processes and subscribers) or the ground network (the ground
 #: station and the mission manager's bridge, under the ground namespace).
@@ -133,6 +133,16 @@ class Module:
 
     def last_step(self, steps: int) -> int:
         return steps + self.last_step_offset
+
+    def missing(self, step: int, buffers: dict[str, dict[int, Any]]) -> list[str]:
+        """The lockstep rule, for both transports: the inputs of ``step`` not yet in
+        ``buffers`` (input name -> {step: value}); an input of lag L has none before step L."""
+        return [n for n, i in self.inputs.items()
+                if step - i.lag >= 0 and step - i.lag not in buffers[n]]
+
+    def take(self, step: int, buffers: dict[str, dict[int, Any]]) -> dict[str, Any]:
+        """Remove and return the inputs of ``step`` from ``buffers`` (None where absent)."""
+        return {n: buffers[n].pop(step - i.lag, None) for n, i in self.inputs.items()}
 
 
 #: The modules, in launch order; the mission last.

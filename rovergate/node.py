@@ -247,16 +247,13 @@ class ModuleNode:
     # --- the lockstep ---------------------------------------------------------------------
 
     def _missing(self, step: int) -> list[str]:
-        return [n for n, i in self.inputs.items()
-                if step - i.lag >= 0 and (step - i.lag) not in self._buffers[n]]
+        return self.spec.missing(step, self._buffers)
 
     def _handle_complete(self, logic: ModuleLogic, step: int, last_step: int | None) -> int:
         """Handle every step, from ``step`` on, whose inputs are all in; returns the first step
         still waiting."""
         while not self._missing(step) and (last_step is None or step <= last_step):
-            inputs = {n: self._buffers[n].pop(step - i.lag, None)
-                      for n, i in self.inputs.items()}
-            out: StepOutput = logic.handle(step, inputs)
+            out: StepOutput = logic.handle(step, self.spec.take(step, self._buffers))
             for topic, value in out.messages:
                 self.publish(topic, value)
             for stage, seconds in out.stages.items():

@@ -108,19 +108,6 @@ class Mission:
     def _tail(self) -> str:
         return "; its stderr ends:\n" + "".join(self.lines[-30:])
 
-    def wait_for_line(self, pattern: str, timeout_s: float = 120) -> re.Match:
-        """The first stderr line matching ``pattern`` (a regex), waiting for it."""
-        def state() -> re.Match | str | None:
-            for line in self.lines:
-                if m := re.search(pattern, line):
-                    return m
-            return "ended" if self.lines[-1:] == [""] else None
-        result = self.waiter.wait_for(state, timeout_s, f"line /{pattern}/ from rovergate",
-                                      self._tail)
-        if result == "ended":
-            raise AssertionError(f"rovergate exited with no line /{pattern}/{self._tail()}")
-        return result
-
     def wait_for_lines(self, pattern: str, count: int, timeout_s: float = 240) -> list[str]:
         """The first ``count`` stderr lines matching ``pattern``, waiting for them."""
         def state() -> list[str] | str | None:
@@ -134,6 +121,10 @@ class Mission:
             raise AssertionError(f"rovergate exited before {count} lines /{pattern}/"
                                  f"{self._tail()}")
         return result
+
+    def wait_for_line(self, pattern: str, timeout_s: float = 120) -> re.Match:
+        """The first stderr line matching ``pattern`` (a regex), waiting for it."""
+        return re.search(pattern, self.wait_for_lines(pattern, 1, timeout_s)[0])
 
     def send(self, line: str) -> None:
         """Type a line on the process's standard input."""
