@@ -20,6 +20,9 @@ from rovergate.errors import MissionFailed
 
 log = logging.getLogger("rovergate.mission")
 
+#: How long a module whose liveliness token vanished may take to be reported as exited.
+EXIT_GRACE_S = 1.0
+
 #: The command line that starts module ``name`` (resuming at a step, or from the start).
 CommandFor = Callable[[str, "int | None"], list[str]]
 
@@ -131,7 +134,12 @@ class ProcessSupervisor:
                 out.append((name, f"exited with code {code}"))
             elif name in self._ever_alive and name not in self.alive \
                     and name not in self.resuming:
-                out.append((name, "its liveliness token vanished"))
+                # A process that dies closes its links before the kernel reports its exit:
+                # give it a moment, so that a death is reported as one, with its exit code.
+                try:
+                    out.append((name, f"exited with code {p.wait(EXIT_GRACE_S)}"))
+                except subprocess.TimeoutExpired:
+                    out.append((name, "its liveliness token vanished"))
         return out
 
     def restart(self, name: str, reason: str, step: int) -> RestartEvent:
