@@ -8,8 +8,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gate.filter import ObservationGate
+from gate.views import ViewCounter, as_views
 from rovergate.conditions import get_condition
 from rovergate.config import GateConfig, SensorConfig
+from rovergate.geometry import in_region
 from rovergate.spatial import kdtree
 from rovergate.types import (
     PLANNER_DTYPE,
@@ -46,50 +48,54 @@ def oracle_tags(predicted_xyz: np.ndarray, reference_xyz: np.ndarray, delta_m: f
 
 
 class Gate:
-    """Composes S_t, the prediction and (oracle conditions only) ground truth for the planner."""
+    """Composes S_t, the prediction and (oracle conditions only) ground truth for the planner.
+
+    Everything it passes on lies in the scored region (:func:`rovergate.geometry.in_region`),
+    and every point carries its views under one rule (:mod:`gate.views`).
+    """
 
     def __init__(self, condition: str, cfg: GateConfig, sensor: SensorConfig, d_scene_m: float,
-                 reference_xyz: np.ndarray | None = None, observed_radius_m: float = 0.0
-                 ) -> None:
+                 bounds_m: tuple[float, ...], view_tolerance_m: float,
+                 reference_xyz: np.ndarray | None = None) -> None:
         self.condition = get_condition(condition)
         if self.condition.needs_truth and reference_xyz is None:
             raise ValueError(f"condition {condition!r} needs the reference occupancy")
+        self.bounds_m = bounds_m
+        if reference_xyz is not None:
+            reference_xyz = reference_xyz[in_region(reference_xyz, bounds_m)]
         self.reference_xyz = reference_xyz
         self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
         self.delta_m = cfg.oracle_delta_m(d_scene_m)
-        self.observed_radius_m = observed_radius_m
         self.filter = ObservationGate(cfg.k, cfg.epsilon_m(d_scene_m), sensor.min_range_m,
                                       sensor.max_range_m)
+        self.views = ViewCounter(sensor.min_range_m, sensor.max_range_m, view_tolerance_m)
 
-    def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics) -> None:
+    def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics, depth: np.ndarray
+                ) -> None:
         """Take up a past frame without composing its map (a restarted gate replaying its
-        past): its only state is the frustums so far, as U_t is recomputed every step."""
-        self.filter.add_frustum(T_map_camera.matrix(), intrinsics)
+        past): its only state is the frames so far (U_t and the views are recounted)."""
+        T = T_map_camera.matrix()
+        self.filter.add_frustum(T, intrinsics)
+        self.views.add_frame(T, intrinsics, depth)
 
-    def step(self, mapped: MapperOutput, T_map_camera: Pose,
-             intrinsics: CameraIntrinsics) -> PlannerMap:
+    def step(self, mapped: MapperOutput, T_map_camera: Pose, intrinsics: CameraIntrinsics,
+             depth: np.ndarray) -> PlannerMap:
         """The planner-facing occupancy of step t (the frame of step t is counted first)."""
-        self.restore(T_map_camera, intrinsics)
-        surface = mapped.surface
-        s_xyz = xyz(surface)
-        observed = make_cloud(s_xyz, PLANNER_DTYPE, source=Source.OBSERVED,
-                              views=surface["views"])
+        self.restore(T_map_camera, intrinsics, depth)
         name = self.condition.name
         if name == "truth":
-            # O* alone (equation 2), each point carrying the views of the nearest S_t point
-            # within the planner's observed radius: what the reconstruction has seen, without
-            # which every truth point would stay novel and draw the planner back for ever.
-            ref = self.reference_xyz
-            views = np.zeros(len(ref), dtype=np.uint16)
-            if len(s_xyz) and self.observed_radius_m > 0:
-                d, i = kdtree(s_xyz).query(ref, distance_upper_bound=self.observed_radius_m)
-                hit = np.isfinite(d)
-                views[hit] = surface["views"][i[hit]]
-            return PlannerMap(mapped.step, make_cloud(ref, PLANNER_DTYPE, source=Source.TRUTH,
-                                                      views=views))
+            ref = self.reference_xyz  # O* alone (equation 2)
+            return PlannerMap(mapped.step, make_cloud(
+                ref, PLANNER_DTYPE, source=Source.TRUTH,
+                views=as_views(self.views.views_grown("truth", ref))))
+        s_xyz = xyz(mapped.surface)
+        observed = make_cloud(s_xyz, PLANNER_DTYPE, source=Source.OBSERVED,
+                              views=as_views(self.views.views_grown("observed", s_xyz)))
+        observed = observed[in_region(s_xyz, self.bounds_m)]
         if name == "obs":
             return PlannerMap(mapped.step, observed)
         pred = xyz(mapped.predicted)
+        pred = pred[in_region(pred, self.bounds_m)]
         keep = np.ones(len(pred), dtype=bool)
         extra = np.zeros((0, 3), dtype=np.float32)
         suppressed = 0
@@ -103,7 +109,10 @@ class Gate:
                 keep = ~tags.false_positive
             else:
                 extra = tags.false_negative_points
+        pred = pred[keep]
         parts = [observed,
-                 make_cloud(pred[keep], PLANNER_DTYPE, source=Source.PREDICTED),
-                 make_cloud(extra, PLANNER_DTYPE, source=Source.ORACLE_FN)]
+                 make_cloud(pred, PLANNER_DTYPE, source=Source.PREDICTED,
+                            views=as_views(self.views.views_keyed("predicted", pred))),
+                 make_cloud(extra, PLANNER_DTYPE, source=Source.ORACLE_FN,
+                            views=as_views(self.views.views_keyed("oracle", extra)))]
         return PlannerMap(mapped.step, np.concatenate(parts), suppressed)

@@ -31,14 +31,14 @@ class GateNode(LogicDefaults):
                 raise ValueError(f"condition {condition.name} needs the reference occupancy")
             reference = xyz(ask("truth_occupancy"))
             log.info("oracle condition %s: %d reference points", condition.name, len(reference))
-        self.gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, reference,
-                         observed_radius_m=cfg.observed_radius_m)
+        self.gate = Gate(cfg.condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m,
+                         cfg.scene.bounds_m, cfg.gate.view_tolerance_m, reference)
 
     def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()
         mapped = MapperOutput(step, inputs["surface"], inputs["predicted"])
-        occupancy = self.gate.step(mapped, inputs["pose"], inputs["info"])
+        occupancy = self.gate.step(mapped, inputs["pose"], inputs["info"], inputs["depth"])
         return StepOutput([("planner_map", occupancy)], {"gate": time.perf_counter() - t0})
 
     def restore(self, step: int, inputs: dict[str, Any]) -> None:
-        self.gate.restore(inputs["pose"], inputs["info"])
+        self.gate.restore(inputs["pose"], inputs["info"], inputs["depth"])

@@ -16,14 +16,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from scipy.spatial import cKDTree
-
 from mission.coverage import CoverageEvaluator
+from mission.evaluation import StepEvaluator, collision_class
 from mission.metrics import suppression_audit
 from mission.record import MissionRecord
 from mission.transport import InProcessTransport, Transport
 from rovergate.config import MissionConfig
-from rovergate.geometry import voxel_first_points
+from rovergate.geometry import in_region
 from rovergate.module import STOP
 from rovergate.types import MissionStatus, Source, xyz
 
@@ -52,9 +51,10 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         transport.start()
         truth_surface = xyz(transport.ask("truth_surface"))
         evaluator = CoverageEvaluator(truth_surface, cfg.tau_m)
-        # Evaluation only: the reference occupancy O* (as the simulator derives it), to audit
-        # what the gate withheld; built when the condition is (or becomes) gated.
-        audit_ref = audit_tree = None
+        # Evaluation only: O* (as the simulator derives it) to audit what the gate withheld,
+        # to classify collisions and to weigh the planner's decisions (mission.evaluation).
+        judge = StepEvaluator(cfg, truth_surface)
+        previous_base = None
         if ops:
             ops.bridge.event(0, "mission-started",
                              f"{cfg.scene.name}/{cfg.start}, {cfg.platform}, {cfg.condition}, "
@@ -75,32 +75,39 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
             cov = record.coverage[-1] if record.coverage else 0.0
             transport.tick(MissionStatus(t, cfg.steps, "running", condition, cov, collisions))
             if t > 0:
-                record.paths.append(transport.receive("path", t - 1))
+                path = transport.receive("path", t - 1)
+                rejected = transport.receive("rejected", t - 1)
+                record.paths.append(path)
                 report = transport.receive("execution", t - 1)
                 collisions += int(report.collided)
                 record.executions.append(report)
-                predicted = transport.receive("predicted", t - 1)
+                predicted = xyz(transport.receive("predicted", t - 1))
+                predicted = predicted[in_region(predicted, cfg.scene.bounds_m)]
                 planner_map = transport.receive("planner_map", t - 1)
                 kept = planner_map.points[planner_map.points["source"] == Source.PREDICTED]
                 record.predicted_points.append(len(predicted))
                 record.planner_predicted.append(len(kept))
                 # The map carries no count of what the gate withheld; under the gate, what it
-                # withheld is what it did not pass on.
+                # withheld is what it did not pass on (in the scored region, where it works).
                 record.suppressed.append(len(predicted) - len(kept) if condition == "gated"
                                          else 0)
                 if condition == "gated":
-                    if audit_ref is None:
-                        audit_ref = voxel_first_points(truth_surface, cfg.mapper.voxel_m)
-                        audit_tree = cKDTree(audit_ref)
                     record.suppressed_fp.append(suppression_audit(
-                        xyz(predicted), xyz(kept), audit_ref, cfg.oracle_delta_m,
-                        audit_tree)[1])
+                        predicted, xyz(kept), judge.reference, cfg.oracle_delta_m,
+                        judge.tree)[1])
+                record.collision_class.append(collision_class(
+                    report, planner_map, cfg.planner.obstacle_voxel_m))
+                decision = judge.decision(planner_map, path, rejected, previous_base)
+                record.fp_gain_share.append(decision.fp_gain_share)
+                record.rejected_by_fp.append(decision.rejected_by_fp)
             surface = transport.receive("surface", t)
             base = transport.receive("base", t)
             if t > 0:
                 record.step_wall_s.append(time.perf_counter() - t_step)
                 t_step = time.perf_counter()
             record.base_xy.append((float(base.position[0]), float(base.position[1])))
+            record.base_z.append(float(base.position[2]))
+            previous_base = base
             record.coverage.append(evaluator.update(xyz(surface)))
             if ops:
                 ops.after_step(MissionStatus(t, cfg.steps, "running", condition,

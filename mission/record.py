@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mission.coverage import auc
+from mission.evaluation import PLANNER_FAULT, UNSEEN, stuck_flags
 from rovergate.types import ExecutionReport, PlanPath
 
 
@@ -18,6 +19,15 @@ class MissionRecord:
     """Coverage after poses 0..T (T+1 values)."""
     base_xy: list[tuple[float, float]] = field(default_factory=list)
     """Rover base position at each pose 0..T."""
+    base_z: list[float] = field(default_factory=list)
+    """Its height at each pose 0..T."""
+    collision_class: list[str | None] = field(default_factory=list)
+    """Per motion 0..T-1: planner-fault, unseen-geometry or None (no collision); see
+    :mod:`mission.evaluation`."""
+    fp_gain_share: list[float | None] = field(default_factory=list)
+    """Per step 0..T-1: share of the chosen view's gain from oracle false positives."""
+    rejected_by_fp: list[int] = field(default_factory=list)
+    """Per step 0..T-1: candidates rejected as infeasible because of oracle false positives."""
     executions: list[ExecutionReport] = field(default_factory=list)
     paths: list[PlanPath] = field(default_factory=list)
     stage_s: dict[str, list[float]] = field(default_factory=dict)
@@ -48,6 +58,12 @@ class MissionRecord:
     def add_stage(self, stage: str, seconds: float) -> None:
         self.stage_s.setdefault(stage, []).append(seconds)
 
+    def stuck(self) -> np.ndarray:
+        """(T+1,) bool: stuck at each pose (:func:`mission.evaluation.stuck_flags`)."""
+        pos = np.c_[np.array(self.base_xy, dtype=np.float64).reshape(-1, 2),
+                    np.array(self.base_z, dtype=np.float64)]
+        return stuck_flags(pos)
+
     def metrics(self) -> dict:
         """The figures of metrics.json."""
         med = {k: float(np.median(v)) for k, v in sorted(self.stage_s.items()) if v}
@@ -57,6 +73,7 @@ class MissionRecord:
                 n = min(len(values), len(stage_sum))
                 stage_sum[:n] += values[:n]
         transport = np.maximum(np.asarray(self.step_wall_s) - stage_sum, 0.0)
+        shares = [s for s in self.fp_gain_share if s is not None]
         return {
             "mode": self.mode,
             "steps": len(self.coverage) - 1,
@@ -64,6 +81,14 @@ class MissionRecord:
             "final_coverage": self.coverage[-1] if self.coverage else 0.0,
             "auc": auc(self.coverage),
             "collisions": int(sum(e.collided for e in self.executions)),
+            "collisions_planner_fault": self.collision_class.count(PLANNER_FAULT),
+            "collisions_unseen": self.collision_class.count(UNSEEN),
+            "collision_class_per_step": self.collision_class,
+            "stuck_steps": int(self.stuck().sum()),
+            "fp_gain_share": (float(np.mean(shares)) if shares else None),
+            "fp_gain_share_per_step": self.fp_gain_share,
+            "rejected_by_fp": int(sum(self.rejected_by_fp)),
+            "rejected_by_fp_per_step": self.rejected_by_fp,
             "min_clearance_m": float(min((e.min_clearance_m for e in self.executions),
                                          default=float("nan"))),
             "untraversable_stops": int(sum(e.untraversable for e in self.executions)),

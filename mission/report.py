@@ -16,6 +16,10 @@ from planner.planner import planner_name  # noqa: E402
 from rovergate.config import MissionConfig  # noqa: E402
 
 
+def _num(v: float | None) -> str:
+    return "" if v is None else repr(v)
+
+
 def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bool = True
                  ) -> dict:
     """Write every output file of a run into ``out`` (``plots``: with its two pictures);
@@ -30,14 +34,20 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
     with open(out / "coverage.csv", "w", newline="") as f:
         w = csv.writer(f)
         # One row per pose t; the motion columns describe the motion that led to pose t.
-        w.writerow(["step", "coverage", "collided", "untraversable", "min_clearance_m",
-                    "path_length_m", "pose_error_m"])
+        # The decision columns describe the step that chose that motion (step t-1).
+        w.writerow(["step", "coverage", "collided", "collision_class", "untraversable",
+                    "min_clearance_m", "path_length_m", "pose_error_m", "stuck",
+                    "fp_gain_share", "rejected_by_fp"])
+        stuck = record.stuck()
         for t, c in enumerate(record.coverage):
             e = record.executions[t - 1] if 0 < t <= len(record.executions) else None
-            motion = ([int(e.collided), int(e.untraversable), repr(e.min_clearance_m),
-                       repr(e.path_length_m), repr(e.pose_error_m)] if e else ["", "", "", "",
-                                                                               ""])
-            w.writerow([t, repr(c), *motion])
+            motion = ([int(e.collided), record.collision_class[t - 1] or "",
+                       int(e.untraversable), repr(e.min_clearance_m), repr(e.path_length_m),
+                       repr(e.pose_error_m)] if e else [""] * 6)
+            decision = ([_num(record.fp_gain_share[t - 1]), record.rejected_by_fp[t - 1]]
+                        if 0 < t <= len(record.fp_gain_share) else ["", ""])
+            w.writerow([t, repr(c), *motion, int(stuck[t]) if t < len(stuck) else "",
+                        *decision])
     if not plots:
         return metrics
 
@@ -60,10 +70,12 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
         xy = list(zip(*record.base_xy, strict=True))
         ax.plot(xy[0], xy[1], "-o", color="crimson", ms=2, lw=1.2, label="rover path")
         ax.plot(*record.base_xy[0], "k^", ms=8, label="start")
-    hits = [record.base_xy[i + 1] for i, e in enumerate(record.executions)
-            if e.collided and i + 1 < len(record.base_xy)]
-    if hits:
-        ax.plot(*zip(*hits, strict=True), "rx", ms=10, mew=2, label="collision")
+    for cls, marker in (("planner-fault", "rx"), ("unseen-geometry", "mx")):
+        hits = [record.base_xy[i + 1] for i, k in enumerate(record.collision_class)
+                if k == cls and i + 1 < len(record.base_xy)]
+        if hits:
+            ax.plot(*zip(*hits, strict=True), marker, ms=10, mew=2,
+                    label=f"collision ({cls})")
     b = cfg.scene.bounds_m
     ax.set(xlim=(b[0], b[3]), ylim=(b[1], b[4]), aspect="equal", xlabel="x (m)", ylabel="y (m)",
            title="observed surface S_T (top-down) and rover path")

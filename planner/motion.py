@@ -23,26 +23,32 @@ def _rrt_connect(space, read: Callable, write: Callable, start, goal,
                  is_free: Callable[..., bool], max_checks: int,
                  resolution_m: float) -> list | None:
     """The straight motion if it is free, else RRT-Connect in ``space`` (bounds set), stopped
-    after ``max_checks`` validity checks.
+    after ``max_checks`` validity checks. Every state of the path after ``start`` is checked
+    (``resolution_m`` apart along it); ``start`` itself is not, so that a platform the map
+    now blocks where it stands can leave by a motion that is free everywhere else.
 
     ``read(state)`` gives a tuple from an OMPL state, ``write(state, values)`` sets one.
     """
     ss = og.SimpleSetup(space)
     checks = [0]
+    s, g = space.allocState(), space.allocState()
+    write(s, start)
+    write(g, goal)
+    here = read(s)
 
     def valid(state) -> bool:
+        values = read(state)
+        if values == here:  # the current state is not judged: the platform is there
+            return True
         checks[0] += 1
-        return is_free(*read(state))
+        return is_free(*values)
 
     ss.setStateValidityChecker(valid)
     si = ss.getSpaceInformation()
     si.setStateValidityCheckingResolution(resolution_m / space.getMaximumExtent())
-    s, g = space.allocState(), space.allocState()
-    write(s, start)
-    write(g, goal)
     ss.setStartAndGoalStates(s, g)
     ss.setup()
-    if valid(s) and si.checkMotion(s, g):
+    if si.checkMotion(s, g):
         # The straight motion is free (OMPL's discrete motion check at ``resolution_m``): it is
         # the shortest path, and what simplifying a tree's path would converge to.
         return [read(s), read(g)]

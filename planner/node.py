@@ -31,4 +31,5 @@ class PlannerNode(LogicDefaults):
         seconds = time.perf_counter() - t0
         log.debug("step %d: %s, gain %d after %d attempts", step, result.reason, result.gain,
                   result.attempts)
-        return StepOutput([("path", result.path)], {"plan": seconds})
+        return StepOutput([("rejected", result.rejected), ("path", result.path)],
+                          {"plan": seconds})

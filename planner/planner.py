@@ -17,7 +17,6 @@ from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
 from rovergate.errors import UnknownNameError
-from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
 
 
@@ -32,6 +31,8 @@ class PlanResult:
     """Candidates sent to OMPL before one was feasible."""
     reason: str
     """'best-feasible', 'rotate' (nothing feasible: turn in place) or 'stay'."""
+    rejected: PlanPath
+    """Goal poses of the candidates tried and found infeasible, in the order tried."""
 
 
 class Planner(abc.ABC):
@@ -48,42 +49,47 @@ class Planner(abc.ABC):
                ) -> tuple[MotionModel, np.random.Generator, GainField]:
         """One step's motion model, random generator (seeded by seed and step) and gain field,
         all read from the same planner-facing map."""
-        cfg, pc, sensor = self.cfg, self.cfg.planner, self.cfg.sensor
+        cfg, pc = self.cfg, self.cfg.planner
         points = xyz(occupancy.points)
         model = motion_model(cfg, points, T_map_base,
                              predicted=occupancy.points["source"] == Source.PREDICTED)
         rng = np.random.default_rng([cfg.seed, step])
-        k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
-                                      sensor.vfov_deg).scaled(pc.gain_resolution)
-        novel = novel_mask(occupancy, pc.observed_min_views, cfg.observed_radius_m)
-        field = GainField(points, novel, pc.gain_voxel_m, k, sensor.min_range_m,
-                          sensor.max_range_m, pc.zbuffer_tolerance_m)
-        return model, rng, field
+        return model, rng, gain_field(cfg, points, novel_mask(occupancy, pc.observed_min_views))
 
 
-def novel_mask(occupancy: PlannerMap, observed_min_views: int, radius_m: float) -> np.ndarray:
-    """(N,) bool: map points not yet observed.
+def gain_field(cfg: MissionConfig, points: np.ndarray, novel: np.ndarray) -> GainField:
+    """The gain field the planner renders: ``novel`` (N,) bool weights ``points``."""
+    pc, sensor = cfg.planner, cfg.sensor
+    k = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
+                                  sensor.vfov_deg).scaled(pc.gain_resolution)
+    return GainField(points, novel, pc.gain_voxel_m, k, sensor.min_range_m, sensor.max_range_m,
+                     pc.zbuffer_tolerance_m)
 
-    An observed-surface point is novel until it was seen in ``observed_min_views`` frames
-    (surface glimpsed once, far away or at a grazing angle, is worth another look); so is a
-    truth point, whose views are those of the nearest observed point (the gate sets them).
-    Any other point (prediction, oracle) is novel unless a well-observed surface point lies
-    within ``radius_m`` of it.
+
+def novel_mask(occupancy: PlannerMap, observed_min_views: int) -> np.ndarray:
+    """(N,) bool: map points not yet seen in ``observed_min_views`` frames.
+
+    One rule for every point, whatever its source (observed, predicted, reference): its
+    ``views`` are the frames whose camera saw the place where it lies (the gate counts them,
+    :mod:`gate.views`). A point glimpsed once, far away or at a grazing angle, is worth
+    another look.
     """
-    pts = occupancy.points
-    src, views = pts["source"], pts["views"]
-    observed = (src == Source.OBSERVED) | (src == Source.TRUTH)
-    well = observed & (views >= observed_min_views)
-    novel = observed & ~well
-    others = np.flatnonzero(~observed)
-    if len(others):
-        p = xyz(pts)
-        if well.any():
-            d, _ = kdtree(p[well]).query(p[others], distance_upper_bound=radius_m)
-            novel[others] = d > radius_m
-        else:
-            novel[others] = True
-    return novel
+    return occupancy.points["views"] < observed_min_views
+
+
+def plan_seed(cfg: MissionConfig, step: int, tried: int) -> int:
+    """OMPL's seed for the motion to the candidate tried after ``tried`` others."""
+    return cfg.seed * 100_003 + step * 101 + tried + 1
+
+
+def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) -> PlanResult:
+    """No candidate was feasible: turn in place if the turn is free, else stay."""
+    tried = GreedyPlanner._to_path(step, rejected, model)
+    turn = model.turn(model.current)
+    if model.is_free_turn(turn):
+        return PlanResult(GreedyPlanner._to_path(step, [model.current, turn], model), 0,
+                          len(rejected), "rotate", tried)
+    return PlanResult(PlanPath(step, [T_map_base]), 0, len(rejected), "stay", tried)
 
 
 class GreedyPlanner(Planner):
@@ -103,23 +109,17 @@ class GreedyPlanner(Planner):
         here = np.array(model.current[:3 if cfg.platform == "flyer" else 2])
         travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
         order = np.lexsort((travel, -gains))  # best gain first, then the nearer
-        attempts = 0
+        rejected = []
         for i in order[: pc.max_attempts]:
-            attempts += 1
             goal = candidates[i]
-            if not model.is_free(goal):
-                continue
-            path = model.plan(model.current, goal,
-                              seed=cfg.seed * 100_003 + step * 101 + attempts)
-            if path is None or model.length(path) > pc.max_step_m:
-                continue
-            return PlanResult(self._to_path(step, path, model), int(gains[i]), attempts,
-                              "best-feasible")
-        turn = model.turn(model.current)
-        if model.is_free_turn(turn):
-            return PlanResult(self._to_path(step, [model.current, turn], model), 0, attempts,
-                              "rotate")
-        return PlanResult(PlanPath(step, [T_map_base]), 0, attempts, "stay")
+            if model.is_free(goal):
+                path = model.plan(model.current, goal, seed=plan_seed(cfg, step, len(rejected)))
+                if path is not None and model.length(path) <= pc.max_step_m:
+                    return PlanResult(self._to_path(step, path, model), int(gains[i]),
+                                      len(rejected) + 1, "best-feasible",
+                                      self._to_path(step, rejected, model))
+            rejected.append(goal)
+        return fallback(step, model, T_map_base, rejected)
 
     @staticmethod
     def _to_path(step: int, states: list, model: MotionModel) -> PlanPath:
@@ -189,21 +189,17 @@ class BeamPlanner(Planner):
                 best_of_first[c.first] = max(best_of_first[c.first], c.gain)
             beam = sorted(children, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
         order = sorted(firsts, key=lambda t: (-best_of_first[t.first], t.travel_m))
-        attempts = 0
+        rejected = []
         for t in order[: pc.max_attempts]:
-            attempts += 1
             goal = t.states[1]
-            path = model.plan(model.current, goal,
-                              seed=cfg.seed * 100_003 + step * 101 + attempts)
-            if path is None or model.length(path) > pc.max_step_m:
-                continue
-            return PlanResult(GreedyPlanner._to_path(step, path, model),
-                              int(best_of_first[t.first]), attempts, "best-feasible")
-        turn = model.turn(model.current)
-        if model.is_free_turn(turn):
-            return PlanResult(GreedyPlanner._to_path(step, [model.current, turn], model), 0,
-                              attempts, "rotate")
-        return PlanResult(PlanPath(step, [T_map_base]), 0, attempts, "stay")
+            path = model.plan(model.current, goal, seed=plan_seed(cfg, step, len(rejected)))
+            if path is not None and model.length(path) <= pc.max_step_m:
+                return PlanResult(GreedyPlanner._to_path(step, path, model),
+                                  int(best_of_first[t.first]), len(rejected) + 1,
+                                  "best-feasible",
+                                  GreedyPlanner._to_path(step, rejected, model))
+            rejected.append(goal)
+        return fallback(step, model, T_map_base, rejected)
 
 
 #: Planner registry: ``--planner.name`` chooses.

@@ -5,6 +5,14 @@ pose. The rover's states are (x, y, yaw) on the estimated ground, planned in SE(
 slope and step limits; the flyer's are (x, y, z, yaw, pitch), planned in R^3 (its sphere's
 position) with the view direction turned along the way. Both check collisions against the
 same map the gain is rendered from.
+
+Every motion a model returns is checked on that map, whole: each state after the current one
+is valid, at most ``segment_check_m`` apart (OMPL's motion check at the same resolution). The
+current state itself is not judged (the platform is already there, and the map may have grown
+around it), so a platform whose place the map now calls blocked leaves it by a motion whose
+every later state is free, or turns in place, or stays. The platform never leaves the scored
+region: its states keep its whole body (its reach) inside the footprint of the box of
+interest, the region of every map it is given (:func:`rovergate.geometry.in_region`).
 """
 
 from __future__ import annotations
@@ -21,8 +29,8 @@ from rovergate.types import Pose
 
 State = tuple[float, ...]
 
-#: The flyer may leave an invalid start within this radius (see FlyerModel.plan).
-ESCAPE_RADIUS_M = 1.0
+#: Turns are checked every this many radians (as the simulator executes them).
+TURN_CHECK_RAD = np.radians(5.0)
 
 
 class MotionModel(abc.ABC):
@@ -38,6 +46,18 @@ class MotionModel(abc.ABC):
                                               fallback_ground_z=self._fallback_ground(T_map_base),
                                               predicted=predicted)
         self.current = self.state_of(T_map_base)
+
+    @property
+    @abc.abstractmethod
+    def reach_m(self) -> float:
+        """How far the platform's body reaches from its state's position (in x, y)."""
+
+    def inner_box(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) of the positions whose body stays in the scored region,
+        widened to hold the current position (a start nearer the edge can still leave)."""
+        b, r = self.cfg.scene.bounds_m, self.reach_m + 0.1
+        x, y = self.current[0], self.current[1]
+        return (min(b[0] + r, x), min(b[1] + r, y), max(b[3] - r, x), max(b[4] - r, y))
 
     def _fallback_ground(self, T: Pose) -> float:
         return float(T.position[2])
@@ -81,8 +101,18 @@ class MotionModel(abc.ABC):
         """The same place, looking elsewhere (the fallback when no candidate is feasible)."""
 
     def is_free_turn(self, state: State) -> bool:
-        """Whether turning to ``state`` from the current one is free."""
-        return self.is_free(state)
+        """Whether turning in place from the current state to ``state`` is free, checked every
+        ``TURN_CHECK_RAD`` of the turn (the current state is not judged)."""
+        a = self.current[2] if len(state) == 3 else self.current[3]
+        b = state[2] if len(state) == 3 else state[3]
+        d = (b - a + np.pi) % (2 * np.pi) - np.pi
+        n = max(int(np.ceil(abs(d) / TURN_CHECK_RAD)), 1)
+        for f in np.linspace(0.0, 1.0, n + 1)[1:]:
+            s = list(state)
+            s[2 if len(state) == 3 else 3] = a + f * d
+            if not self.is_free(tuple(s)):
+                return False
+        return True
 
     @staticmethod
     def length(states: list[State]) -> float:
@@ -116,19 +146,23 @@ class RoverModel(MotionModel):
         if cfg.planner.known_ground_only:
             self.ground.drive_known_ground_only(*self.current[:2])
 
+    @property
+    def reach_m(self) -> float:
+        return float(np.hypot(self.cfg.rover.length_m, self.cfg.rover.width_m)) / 2
+
     def state_of(self, T: Pose) -> State:
         return (float(T.position[0]), float(T.position[1]), T.yaw)
 
     def sample(self, rng: np.random.Generator, n: int, around: State | None = None
                ) -> list[State]:
         x0, y0, _ = self.current if around is None else around
-        b, pc = self.cfg.scene.bounds_m, self.cfg.planner
+        pc = self.cfg.planner
         r = pc.max_step_m * np.sqrt(rng.uniform(0, 1, n))
         th = rng.uniform(-np.pi, np.pi, n)
         yaw = rng.uniform(-np.pi, np.pi, n)
-        margin = 0.5
-        cx = np.clip(x0 + r * np.cos(th), b[0] + margin, b[3] - margin)
-        cy = np.clip(y0 + r * np.sin(th), b[1] + margin, b[4] - margin)
+        box = self.inner_box()
+        cx = np.clip(x0 + r * np.cos(th), box[0], box[2])
+        cy = np.clip(y0 + r * np.sin(th), box[1], box[3])
         return list(zip(cx.tolist(), cy.tolist(), yaw.tolist(), strict=True))
 
     def base_pose(self, s: State) -> Pose:
@@ -138,8 +172,7 @@ class RoverModel(MotionModel):
         return self.ground.is_free(*s)
 
     def plan(self, start: State, goal: State, seed: int) -> list[State] | None:
-        b = self.cfg.scene.bounds_m
-        return plan_se2(start, goal, self.ground.is_free, (b[0], b[1], b[3], b[4]), seed=seed,
+        return plan_se2(start, goal, self.ground.is_free, self.inner_box(), seed=seed,
                         max_checks=self.cfg.planner.ompl_max_checks)
 
     def segment_free(self, a: State, b: State) -> bool:
@@ -163,6 +196,10 @@ class FlyerModel(MotionModel):
     def _fallback_ground(self, T: Pose) -> float:
         return float(T.position[2]) - self.cfg.flyer.altitude_m
 
+    @property
+    def reach_m(self) -> float:
+        return self.sphere.reach
+
     def state_of(self, T: Pose) -> State:
         x, y, z = (float(v) for v in T.position)
         return (x, y, z, T.yaw, T.pitch)
@@ -170,14 +207,14 @@ class FlyerModel(MotionModel):
     def sample(self, rng: np.random.Generator, n: int, around: State | None = None
                ) -> list[State]:
         x0, y0, z0 = (self.current if around is None else around)[:3]
-        b, f, pc = self.cfg.scene.bounds_m, self.cfg.flyer, self.cfg.planner
+        f, pc = self.cfg.flyer, self.cfg.planner
         d = rng.standard_normal((n, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         r = pc.max_step_m * np.cbrt(rng.uniform(0, 1, n))
         p = np.array([x0, y0, z0]) + d * r[:, None]
-        margin = 0.5
-        p[:, 0] = np.clip(p[:, 0], b[0] + margin, b[3] - margin)
-        p[:, 1] = np.clip(p[:, 1], b[1] + margin, b[4] - margin)
+        box = self.inner_box()
+        p[:, 0] = np.clip(p[:, 0], box[0], box[2])
+        p[:, 1] = np.clip(p[:, 1], box[1], box[3])
         yaw = rng.uniform(-np.pi, np.pi, n)
         pitch = np.radians(rng.uniform(f.min_pitch_deg, f.max_pitch_deg, n))
         out = []
@@ -194,24 +231,15 @@ class FlyerModel(MotionModel):
 
     def _box(self) -> tuple[float, ...]:
         b, f = self.cfg.scene.bounds_m, self.cfg.flyer
-        return (b[0], b[1], b[2] - 1.0, b[3], b[4], b[5] + f.max_altitude_m)
+        x0, y0, x1, y1 = self.inner_box()
+        return (x0, y0, min(b[2] - 1.0, self.current[2]), x1, y1,
+                max(b[5] + f.max_altitude_m, self.current[2]))
 
     def plan(self, start: State, goal: State, seed: int) -> list[State] | None:
         box = self._box()
         if not all(box[i] <= start[i] <= box[i + 3] for i in range(3)):
             return None
-        # The altitude band follows a ground estimate that changes as the map grows, so the
-        # flyer may find itself outside it (or a new point may land near it): near its start
-        # it may move anywhere to leave such a spot; beyond, every state must be valid.
-        s0 = np.array(start[:3])
-
-        def valid(x: float, y: float, z: float) -> bool:
-            near = (x - s0[0]) ** 2 + (y - s0[1]) ** 2 + (z - s0[2]) ** 2 < ESCAPE_RADIUS_M**2
-            if near:
-                return True
-            return self.sphere.is_free(x, y, z)
-
-        path = plan_r3(start[:3], goal[:3], valid, box, seed=seed,
+        path = plan_r3(start[:3], goal[:3], self.sphere.is_free, box, seed=seed,
                        max_checks=self.cfg.planner.ompl_max_checks)
         if path is None:
             return None
@@ -226,15 +254,13 @@ class FlyerModel(MotionModel):
     def segment_free(self, a: State, b: State) -> bool:
         f = self._steps(a, b, 3)[1:, None]
         p = np.asarray(a[:3]) + f * (np.asarray(b[:3]) - np.asarray(a[:3]))
-        # As in plan(): near the current state the flyer may leave a spot the map now blocks.
-        check = np.sum((p - np.asarray(self.current[:3])) ** 2, axis=1) >= ESCAPE_RADIUS_M**2
-        return bool(self.sphere.free_many(p[check]).all())
+        return bool(self.sphere.free_many(p).all())
 
     def turn(self, s: State) -> State:
         return (*s[:3], s[3] + np.pi / 2, 0.0)
 
     def is_free_turn(self, s: State) -> bool:
-        return True  # turning in place moves no part of the sphere
+        return True  # turning in place moves no part of the sphere (nor leaves the place)
 
 
 def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,

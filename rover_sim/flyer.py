@@ -10,7 +10,7 @@ from __future__ import annotations
 import fcl
 import numpy as np
 
-from rover_sim.rover import STOP_MARGIN_M, MotionResult, clearance
+from rover_sim.rover import STOP_MARGIN_M, MotionResult, clearance, contact_point
 from rover_sim.scene import Scene
 from rovergate.config import FlyerConfig
 from rovergate.types import Pose
@@ -65,12 +65,13 @@ class FlyerBody:
                 f = k / n
                 p = [a[i] + f * (b[i] - a[i]) for i in range(3)]
                 samples.append((*p, a[3] + f * dyaw, a[4] + f * (b[4] - a[4])))
-        clear, min_clear, collided, hits = [], np.inf, False, 0
+        clear, min_clear, collided, hits, contact = [], np.inf, False, 0, None
         for s in samples:
             d = self.clearance(s[:3])
             min_clear = min(min_clear, d)
             if d <= 0.0:
                 collided, hits = True, 1
+                contact = contact_point(self._sphere, self._scene_obj)
                 break
             clear.append(d)
         last = len(clear) - 1
@@ -83,4 +84,4 @@ class FlyerBody:
         final = samples[last]
         final = (*final[:3], float((final[3] + np.pi) % (2 * np.pi) - np.pi), final[4])
         return MotionResult(final, collided, hits, float(min_clear), driven,
-                            driven / total if total > 0 else 1.0)
+                            driven / total if total > 0 else 1.0, contact=contact)

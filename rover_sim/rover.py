@@ -31,6 +31,8 @@ class MotionResult:
     length_m: float
     executed_fraction: float
     untraversable: bool = False
+    contact: tuple[float, float, float] | None = None
+    """Where the body first touched the scene (map frame), when it did."""
 
 
 #: After a collision the rover stands back this far from the contact (or at its start).
@@ -117,7 +119,7 @@ class RoverBody:
         total = _length(samples)
         clear = []
         min_clear = np.inf
-        collided, n_collisions, blocked = False, 0, False
+        collided, n_collisions, blocked, contact = False, 0, False, None
         for k, pose in enumerate(samples):
             if k > 0 and not self.traversable(*pose):
                 blocked = True
@@ -126,6 +128,7 @@ class RoverBody:
             min_clear = min(min_clear, d)
             if d <= 0.0:
                 collided, n_collisions = True, n_collisions + 1
+                contact = contact_point(self._body, self._scene_obj)
                 break
             clear.append(d)
         stop = len(clear) - 1
@@ -137,7 +140,7 @@ class RoverBody:
         last_free = samples[max(stop, 0)]
         driven = _length(samples[: max(stop, 0) + 1])
         return MotionResult(last_free, collided, n_collisions, float(min_clear), driven,
-                            driven / total if total > 0 else 1.0, blocked)
+                            driven / total if total > 0 else 1.0, blocked, contact)
 
 
 def clearance(body: fcl.CollisionObject, scene: fcl.CollisionObject) -> float:
@@ -151,6 +154,16 @@ def clearance(body: fcl.CollisionObject, scene: fcl.CollisionObject) -> float:
         return -1.0
     return max(float(fcl.distance(body, scene, fcl.DistanceRequest(), fcl.DistanceResult())),
                0.0)
+
+
+def contact_point(body: fcl.CollisionObject, scene: fcl.CollisionObject
+                  ) -> tuple[float, float, float] | None:
+    """A point where two touching FCL objects meet (FCL's first contact), or None."""
+    request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=True)
+    result = fcl.CollisionResult()
+    if not fcl.collide(body, scene, request, result) or not result.contacts:
+        return None
+    return tuple(float(v) for v in result.contacts[0].pos)
 
 
 def _wrap(a: float) -> float:

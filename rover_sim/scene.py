@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from rovergate.geometry import in_region
+
 
 @dataclass
 class Scene:
@@ -101,8 +103,7 @@ class Scene:
         inside = ((c[:, 0] >= xmin) & (c[:, 0] <= xmax) & (c[:, 1] >= ymin) & (c[:, 1] <= ymax))
         roi = mesh.submesh([np.flatnonzero(inside)], append=True)
         pts, _ = trimesh.sample.sample_surface(roi, n, seed=seed)
-        keep = ((pts[:, 0] >= xmin) & (pts[:, 0] <= xmax) & (pts[:, 1] >= ymin)
-                & (pts[:, 1] <= ymax))
+        keep = in_region(pts, self.bounds_m)  # the one scored region (see in_region)
         if self.mesh is not None:  # a file's mesh: its inside is not known, keep every sample
             return pts[keep].astype(np.float32)
         keep &= pts[:, 2] >= self.height_at(pts[:, 0], pts[:, 1]) - 0.02

@@ -108,9 +108,12 @@ class RoverSim:
             log.info("step %d: untraversable ground ahead after %.2f m; the rover stopped",
                      path.step, motion.length_m)
         self.state = motion.final_xy_yaw
+        contact = None
+        if motion.contact is not None:  # reported where the platform believes it is
+            contact = tuple(float(v) for v in (self._drift @ np.r_[motion.contact, 1.0])[:3])
         return ExecutionReport(path.step, motion.collided, motion.collision_samples,
                                motion.min_clearance_m, motion.length_m, motion.executed_fraction,
-                               motion.untraversable, error)
+                               motion.untraversable, error, contact)
 
     def truth_surface(self) -> np.ndarray:
         """(N, 3) float32 ground-truth surface samples (evaluation and oracles only)."""

@@ -173,6 +173,10 @@ class GateConfig:
     """Support radius as a fraction of d_scene (paper: 0.03)."""
     oracle_delta_frac: float = 0.03
     """Oracle tagging tolerance as a fraction of d_scene (paper: 0.03)."""
+    view_tolerance_m: float = 0.3
+    """A frame saw a map point when its return at the point's pixel ends no nearer than the
+    point minus this (gate/views.py): the planner's z-buffer tolerance, so that a past view
+    saw what a candidate view at that pose would have counted."""
 
     def epsilon_m(self, d_scene_m: float) -> float:
         """The support radius epsilon of equation 4, in metres."""
@@ -337,12 +341,6 @@ class MissionConfig:
         """Oracle tagging tolerance delta of this mission's scene, in metres."""
         return self.gate.oracle_delta_m(self.scene.d_scene_m)
 
-    @property
-    def observed_radius_m(self) -> float:
-        """How near a well-observed S_t point must be for a map point to count as observed:
-        1.5 mapper voxels (the planner's gain, and the views a truth point borrows)."""
-        return 1.5 * self.mapper.voxel_m
-
 
 def check_values(cfg: MissionConfig) -> None:
     """Raise :class:`ConfigError` (one line, naming the flag) for a count, limit or range no
@@ -364,6 +362,7 @@ def check_values(cfg: MissionConfig) -> None:
             ("--ready-timeout-s", cfg.ready_timeout_s), ("--step-timeout-s", cfg.step_timeout_s),
             ("--gate.epsilon-frac", cfg.gate.epsilon_frac),
             ("--gate.oracle-delta-frac", cfg.gate.oracle_delta_frac),
+            ("--gate.view-tolerance-m", cfg.gate.view_tolerance_m),
             ("--eval.tau-frac", cfg.eval.tau_frac), ("--mapper.voxel-m", cfg.mapper.voxel_m),
             ("--planner.max-step-m", cfg.planner.max_step_m),
             ("--planner.gain-voxel-m", cfg.planner.gain_voxel_m),

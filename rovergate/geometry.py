@@ -101,6 +101,19 @@ def quat_to_yaw(q_xyzw: np.ndarray) -> float:
     return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
 
 
+def in_region(points: np.ndarray, bounds_m: tuple[float, ...]) -> np.ndarray:
+    """(N,) bool: the points over the footprint of the box of interest ``bounds_m``.
+
+    This is the one scored region: the coverage samples and O* are drawn in it, and the gate
+    crops everything it gives the planner (S_t, predictions, oracle points) to it, so that the
+    gain, the oracle tags and the audit count the same surface as coverage does. The box's
+    z range is not used, as the samples are not (a tall rock counts whole).
+    """
+    p = np.asarray(points)
+    return ((p[:, 0] >= bounds_m[0]) & (p[:, 0] <= bounds_m[3]) & (p[:, 1] >= bounds_m[1])
+            & (p[:, 1] <= bounds_m[4]))
+
+
 def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(N,) int64 key of the voxel that holds each point."""
     idx = np.floor(points.astype(np.float64) / voxel_m).astype(np.int64) + _OFFSET

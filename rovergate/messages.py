@@ -222,14 +222,21 @@ def execution_to_ros(r: ExecutionReport):
         header=_header(r.step), step=r.step, collided=bool(r.collided),
         collision_samples=r.collision_samples, min_clearance_m=float(r.min_clearance_m),
         path_length_m=float(r.path_length_m), executed_fraction=float(r.executed_fraction),
-        untraversable=bool(r.untraversable), pose_error_m=float(r.pose_error_m))
+        untraversable=bool(r.untraversable), pose_error_m=float(r.pose_error_m),
+        contact=_T["geometry_msgs/msg/Point"](
+            *(float(v) for v in (r.contact if r.contact is not None else (np.nan,) * 3))))
 
 
 def execution_from_ros(m) -> ExecutionReport:
     return ExecutionReport(int(m.step), bool(m.collided), int(m.collision_samples),
                            float(m.min_clearance_m), float(m.path_length_m),
                            float(m.executed_fraction), bool(m.untraversable),
-                           float(m.pose_error_m))
+                           float(m.pose_error_m), _contact(m.contact))
+
+
+def _contact(p) -> tuple[float, float, float] | None:
+    xyz = (float(p.x), float(p.y), float(p.z))
+    return None if np.isnan(xyz[0]) else xyz
 
 
 def timing_to_ros(t: StepTiming):
@@ -321,6 +328,7 @@ _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]
     "predicted": _cloud_codec(PREDICTED_DTYPE),
     "planner_map": (lambda v: cloud_to_ros(v.step, v.points), _with_step(_planner_map_from_ros)),
     "path": (path_to_ros, _with_step(path_from_ros)),
+    "rejected": (path_to_ros, _with_step(path_from_ros)),
     "execution": (execution_to_ros, _with_step(execution_from_ros)),
     "status": (status_to_ros, _with_step(status_from_ros)),
     "timing": (timing_to_ros, _with_step(timing_from_ros)),

@@ -179,6 +179,9 @@ class ExecutionReport:
     executed_fraction: float
     untraversable: bool = False
     pose_error_m: float = 0.0
+    contact: tuple[float, float, float] | None = None
+    """Where the body first touched the true scene, in the frame of the published poses
+    (``map`` as the platform believes it); None without a collision."""
 
 
 @dataclass

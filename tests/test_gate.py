@@ -81,18 +81,26 @@ def test_later_support_restores_a_suppressed_point():
     assert not g.unsupported(TARGET, surface_later)[0]
 
 
+BOUNDS = (-20.0, -20.0, -5.0, 20.0, 20.0, 10.0)
+FAR = np.full((K.height, K.width), 30.0, dtype=np.float32)  # every ray ends beyond 20 m
+
+
+def new_gate(name, reference=None, bounds=BOUNDS):
+    return Gate(name, GateConfig(), SensorConfig(), 10.0, bounds, 0.3, reference)
+
+
 def _mapped(surface_xyz, pred_xyz):
     return MapperOutput(3, make_cloud(surface_xyz, SURFACE_DTYPE, views=1),
                         make_cloud(pred_xyz, PREDICTED_DTYPE, probability=0.9))
 
 
 def test_gated_condition_drops_unsupported_points_only():
-    gate = Gate("gated", GateConfig(), SensorConfig(), d_scene_m=10.0)  # epsilon 0.3 m
+    gate = new_gate("gated")  # epsilon 0.3 m
     surface = np.array([[10.0, 0.0, 1.2]], dtype=np.float32)
     pred = np.vstack([TARGET, TARGET + [[0, 3.0, 0]], BEHIND]).astype(np.float32)
     pose = Pose.from_matrix(camera_looking_along_x())
-    gate.step(_mapped(surface, pred), pose, K)
-    out = gate.step(_mapped(surface, pred), pose, K)
+    gate.step(_mapped(surface, pred), pose, K, FAR)
+    out = gate.step(_mapped(surface, pred), pose, K, FAR)
     src = out.points["source"]
     kept = out.points[src == Source.PREDICTED]
     # Supported (near the surface) and never-seen (behind) predictions stay; the exposed,
@@ -107,8 +115,8 @@ def test_every_condition_composes_as_equation_2(name):
     ref = np.array([[0, 0, 0], [5, 5, 0], [9, 9, 9]], dtype=np.float32)
     surface = np.array([[0, 0, 0.05]], dtype=np.float32)
     pred = np.array([[5, 5, 0.1], [3, 3, 3]], dtype=np.float32)  # one true, one false positive
-    gate = Gate(name, GateConfig(), SensorConfig(), d_scene_m=10.0, reference_xyz=ref)
-    out = gate.step(_mapped(surface, pred), Pose.from_matrix(camera_looking_along_x()), K)
+    gate = new_gate(name, ref)
+    out = gate.step(_mapped(surface, pred), Pose.from_matrix(camera_looking_along_x()), K, FAR)
     counts = {s: int((out.points["source"] == s).sum()) for s in range(4)}
     expected = {
         "obs": {0: 1, 1: 0, 2: 0, 3: 0},
@@ -149,18 +157,61 @@ def test_unsupported_equals_equation_4_computed_directly():
     assert np.array_equal(np.minimum(g.exposure_counts(pts, stop_at=2), 2), np.minimum(counts, 2))
 
 
-def test_truth_points_carry_what_the_reconstruction_has_seen():
-    """Under truth the map is O* alone, and each point carries the views of the nearest S_t
-    point within the observed radius, so the planner's gain decays as the scene is seen."""
-    from planner.planner import novel_mask
-    ref = np.array([[0, 0, 0], [5, 5, 0], [9, 9, 9]], dtype=np.float32)
-    surface = np.array([[0, 0, 0.05], [5, 5.1, 0]], dtype=np.float32)
-    gate = Gate("truth", GateConfig(), SensorConfig(), d_scene_m=10.0, reference_xyz=ref,
-                observed_radius_m=0.2)
-    mapped = _mapped(surface, np.zeros((0, 3), np.float32))
-    mapped.surface["views"] = [3, 1]
-    out = gate.step(mapped, Pose.from_matrix(camera_looking_along_x()), K)
-    assert np.array_equal(xyz(out.points), ref)  # equation 2: the geometry is O* exactly
-    assert out.points["views"].tolist() == [3, 1, 0]
-    # Seen in 2 frames or more: no longer novel; once or never: still worth a look.
-    assert novel_mask(out, observed_min_views=2, radius_m=0.2).tolist() == [False, True, True]
+def test_one_rule_of_views_for_every_source():
+    """Every point the planner receives carries the frames that saw its place: truth and
+    predicted points as observed ones, with no borrowing from the reconstruction."""
+    ref = np.array([[10, 0, 1], [-10, 0, 1]], dtype=np.float32)  # ahead; behind the camera
+    pose = Pose.from_matrix(camera_looking_along_x())
+    for name in ("truth", "learned"):
+        gate = new_gate(name, ref)
+        for _ in range(3):
+            out = gate.step(_mapped(ref[:1], ref), pose, K, FAR)
+        assert out.points["views"].tolist() == ([3, 0] if name == "truth" else [3, 3, 0])
+
+
+def test_an_occluded_point_or_a_dropped_return_is_not_a_view():
+    from gate.views import ViewCounter
+    views = ViewCounter(0.3, 20.0, tolerance_m=0.3)
+    T = camera_looking_along_x()
+    wall = np.full((K.height, K.width), 5.0, dtype=np.float32)   # a wall 5 m ahead
+    views.add_frame(T, K, wall)
+    dropped = FAR.copy()
+    dropped[:, :] = np.nan                                       # no return anywhere
+    views.add_frame(T, K, dropped)
+    views.add_frame(T, K, FAR)
+    pts = np.array([[10, 0, 1], [5.1, 0, 1], [4.0, 0, 1]], dtype=np.float32)
+    # Behind the wall: seen only by the clear frame; on the wall (within tolerance) and in
+    # front of it: by the wall's frame and the clear one; never by the dropped frame.
+    assert views.count(pts).tolist() == [1, 2, 2]
+
+
+def test_incremental_views_equal_a_recount():
+    from gate.views import ViewCounter
+    rng = np.random.default_rng(0)
+    views = ViewCounter(0.3, 20.0, tolerance_m=0.3)
+    surface = rng.uniform([2, -5, -2], [15, 5, 3], (50, 3)).astype(np.float32)
+    for step in range(6):
+        T = camera_looking_along_x(rng.uniform(-1, 1))
+        depth = rng.uniform(3, 18, (K.height, K.width)).astype(np.float32)
+        depth[rng.uniform(size=depth.shape) < 0.2] = np.nan
+        views.add_frame(T, K, depth)
+        surface = np.vstack([surface, rng.uniform([2, -5, -2], [15, 5, 3], (20, 3))]
+                            ).astype(np.float32)
+        pred = rng.uniform([2, -5, -2], [15, 5, 3], (40, 3)).astype(np.float32)
+        if step:
+            pred[:20] = last_pred[20:]  # half of it carried over from the last step
+        last_pred = pred
+        assert np.array_equal(views.views_grown("s", surface), views.count(surface))
+        assert np.array_equal(views.views_keyed("p", pred), views.count(pred))
+
+
+def test_everything_the_planner_gets_lies_in_the_scored_region():
+    ref = np.array([[0, 0, 0], [5, 5, 0]], dtype=np.float32)
+    surface = np.array([[0, 0, 0.05], [12, 0, 0]], dtype=np.float32)     # one outside
+    pred = np.array([[5, 5, 0.1], [0, 11, 0], [3, 3, 3]], dtype=np.float32)  # one outside
+    bounds = (-10.0, -10.0, -5.0, 10.0, 10.0, 5.0)
+    pose = Pose.from_matrix(camera_looking_along_x())
+    for name in CONDITIONS:
+        out = new_gate(name, ref, bounds).step(_mapped(surface, pred), pose, K, FAR)
+        p = xyz(out.points)
+        assert len(p) and (np.abs(p[:, :2]) <= 10).all(), name

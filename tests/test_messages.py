@@ -49,7 +49,8 @@ VALUES = {
     "predicted": (7, _cloud(PREDICTED_DTYPE)),
     "planner_map": PlannerMap(7, _cloud(PLANNER_DTYPE)),
     "path": PlanPath(7, [pose, Pose.from_xyz_yaw(2.0, 1.0, 0.0, -1.0)]),
-    "execution": ExecutionReport(7, True, 3, -0.01, 2.5, 0.8),
+    "rejected": PlanPath(7, []),
+    "execution": ExecutionReport(7, True, 3, -0.01, 2.5, 0.8, contact=(1.0, -2.0, 0.5)),
     "status": MissionStatus(7, 100, "running", "obs", 0.25, 1),
     "timing": StepTiming(7, "plan", 0.125, 2),
     "truth_surface": (0, _cloud(XYZ_DTYPE)),
@@ -82,6 +83,11 @@ def _equal(a, b):
 
 def test_every_topic_is_in_the_table():
     assert set(VALUES) == set(TOPICS)
+
+
+def test_an_execution_without_contact_round_trips_to_none():
+    clear = ExecutionReport(7, False, 0, 0.5, 2.5, 1.0)
+    assert decode("execution", encode("execution", clear)) == (7, clear)
 
 
 @pytest.mark.parametrize("topic", sorted(VALUES))

@@ -104,16 +104,16 @@ def test_ompl_is_deterministic_for_a_seed():
     assert a == b
 
 
-def test_novelty_of_observed_and_predicted_points():
-    pts = np.array([[0, 0, 0], [5, 0, 0], [0, 0, 0.1], [9, 9, 9]], dtype=np.float32)
+def test_novelty_is_one_rule_for_every_source():
+    pts = np.array([[0, 0, 0], [5, 0, 0], [0, 0, 0.1], [9, 9, 9], [1, 1, 1], [2, 2, 2]],
+                   dtype=np.float32)
     cloud = make_cloud(pts, PLANNER_DTYPE,
                        source=[Source.OBSERVED, Source.OBSERVED, Source.PREDICTED,
-                               Source.PREDICTED],
-                       views=[3, 1, 0, 0])
-    novel = novel_mask(PlannerMap(0, cloud), observed_min_views=2, radius_m=0.3)
-    # seen 3 times: observed; seen once: still novel; prediction next to a well-observed
-    # point: observed; lone prediction: novel.
-    assert novel.tolist() == [False, True, False, True]
+                               Source.PREDICTED, Source.TRUTH, Source.TRUTH],
+                       views=[3, 1, 2, 0, 5, 1])
+    novel = novel_mask(PlannerMap(0, cloud), observed_min_views=2)
+    # Seen in 2 frames or more: no longer novel, whatever the point's source.
+    assert novel.tolist() == [False, True, False, True, False, True]
 
 
 @pytest.mark.parametrize("planner", [GreedyPlanner, BeamPlanner])

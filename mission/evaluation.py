@@ -1,0 +1,128 @@
+"""Evaluation of each step against ground truth: what the vehicle hit and why, whether it is
+stuck, and how oracle false positives steered the planner's decision. Evaluation only: nothing
+here reaches a module.
+
+- **Collision class.** A collision with the true scene is a *planner fault* when the map the
+  planner was given held the geometry that was hit: a map point within
+  ``PlannerConfig.obstacle_voxel_m`` (the edge of the box the rover's collision model makes of
+  each point; 0.15 m) of the contact point. Otherwise it is *unseen geometry*: the planner
+  could not have known. Every executed motion is checked on the planner's map, so a planner
+  fault means the check and the world disagree (a gap in the map's sampling of a surface, a
+  ground estimate that hid an obstacle) and is a bug to fix, not a finding.
+- **Stuck.** The vehicle is stuck at pose t (t >= ``STUCK_WINDOW``) when its net displacement
+  over the last ``STUCK_WINDOW`` steps is under ``STUCK_MIN_M``.
+- **The paper's decision-level measure.** Of the gain the planner rendered for the viewpoint
+  it chose (the goal of its motion), the share that comes from oracle false positives
+  (predicted points farther than delta from O*); and how many candidates it rejected as
+  infeasible that were feasible on the same map without those false positives (their goal
+  state free and the straight motion to it free: a lower bound, as OMPL is not re-run).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gate.gate import oracle_tags
+from planner.planner import gain_field, novel_mask
+from planner.platforms import motion_model
+from rovergate.config import MissionConfig
+from rovergate.geometry import camera_from_base, voxel_first_points
+from rovergate.spatial import kdtree
+from rovergate.types import ExecutionReport, PlannerMap, PlanPath, Pose, Source, xyz
+
+STUCK_WINDOW = 10
+"""Steps over which net progress is measured."""
+STUCK_MIN_M = 0.5
+"""Net displacement under which a vehicle counts as stuck over the window."""
+
+PLANNER_FAULT = "planner-fault"
+UNSEEN = "unseen-geometry"
+
+
+def collision_class(report: ExecutionReport, planner_map: PlannerMap, tolerance_m: float
+                    ) -> str | None:
+    """:data:`PLANNER_FAULT`, :data:`UNSEEN` or None (no collision); see the module
+    docstring. A collision without a contact point (FCL gave none) counts as a planner fault,
+    the class that must stay at zero."""
+    if not report.collided:
+        return None
+    points = xyz(planner_map.points)
+    if report.contact is None:
+        return PLANNER_FAULT
+    if len(points) == 0:
+        return UNSEEN
+    d, _ = kdtree(points).query(np.asarray(report.contact), distance_upper_bound=tolerance_m)
+    return PLANNER_FAULT if np.isfinite(d) else UNSEEN
+
+
+def stuck_flags(positions: np.ndarray, window: int = STUCK_WINDOW,
+                min_m: float = STUCK_MIN_M) -> np.ndarray:
+    """(T+1,) bool over poses: stuck at t (see the module docstring)."""
+    p = np.asarray(positions, dtype=np.float64).reshape(len(positions), -1)
+    out = np.zeros(len(p), dtype=bool)
+    if len(p) > window:
+        out[window:] = np.linalg.norm(p[window:] - p[:-window], axis=1) < min_m
+    return out
+
+
+@dataclass
+class Decision:
+    """How oracle false positives weighed on one step's decision."""
+
+    fp_gain_share: float | None
+    """Share of the chosen view's rendered gain from oracle false positives (0 when the map
+    holds no novel false positive; None when the view had no gain to share)."""
+    rejected_by_fp: int
+    """Candidates rejected as infeasible that the map without false positives allows."""
+
+
+class StepEvaluator:
+    """The mission's evaluation of each step, with the reference occupancy O* built once."""
+
+    def __init__(self, cfg: MissionConfig, truth_surface: np.ndarray) -> None:
+        self.cfg = cfg
+        self.reference = voxel_first_points(truth_surface, cfg.mapper.voxel_m)  # as the sim
+        self.tree = cKDTree(self.reference)
+
+    def false_positives(self, planner_map: PlannerMap) -> np.ndarray:
+        """(N,) bool over the map: predicted points farther than delta from O*."""
+        pts = planner_map.points
+        fp = np.zeros(len(pts), dtype=bool)
+        pred = np.flatnonzero(pts["source"] == Source.PREDICTED)
+        if len(pred):
+            fp[pred] = oracle_tags(xyz(pts[pred]), self.reference, self.cfg.oracle_delta_m,
+                                   self.tree).false_positive
+        return fp
+
+    def decision(self, planner_map: PlannerMap, path: PlanPath, rejected: PlanPath,
+                 T_map_base: Pose) -> Decision:
+        """The decision measure of one step (``T_map_base``: the pose it planned from)."""
+        cfg = self.cfg
+        fp = self.false_positives(planner_map)
+        points = xyz(planner_map.points)
+        share = None if fp.any() else 0.0  # no false positive in the map: no share of gain
+        goal = path.poses[-1] if path.poses else T_map_base
+        novel = novel_mask(planner_map, cfg.planner.observed_min_views)
+        if share is None and (novel & fp).any():
+            field = gain_field(cfg, points, novel)
+            cam = camera_from_base(goal.matrix(), cfg.sensor, cfg.platform)
+            visible = field.visible(cam)
+            total = field.gain(visible)
+            if total > 0:
+                share = gain_field(cfg, points, novel & fp).gain(visible) / total
+        elif share is None:
+            share = 0.0  # no novel false positive: none of the gain comes from one
+        blocked = 0
+        if fp.any() and rejected.poses:
+            keep = ~fp
+            model = motion_model(cfg, points[keep], T_map_base,
+                                 predicted=(planner_map.points["source"]
+                                            == Source.PREDICTED)[keep])
+            for pose in rejected.poses:
+                g = model.state_of(pose)
+                if model.is_free(g) and model.segment_free(model.current, g):
+                    blocked += 1
+        return Decision(share, blocked)
