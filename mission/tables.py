@@ -1,24 +1,53 @@
-"""The study's outputs from its finished runs: runs.csv, the paper's two tables, confidence
-intervals, coverage plots and summary.json (see :mod:`mission.study`).
+"""The study's outputs from its finished runs: runs.csv, the paper's two tables with their
+statistics, coverage plots and summary.json (see :mod:`mission.study`).
 
-Pairing: every delta is a condition's run minus the `learned` run of the same scene, start and
-repetition (the paper's paired changes). Table 1 pairs repetition 0, as the paper's one-run
-study does; Table 2 pairs every repetition of `learned` and `gated`. Strata (Table 1 and the
-summary rows of Table 2) follow the learned baseline's final coverage at repetition 0: Low
-below 0.75, High above 0.85, as in the paper. Confidence intervals are percentile intervals of
-a paired bootstrap: the pairs (or, for Table 2's pooled rows, the starts) are resampled with
-replacement, with a fixed seed.
+The statistics, and why they are formed this way:
+
+- **Pairing.** Repetition r of every condition runs with seed r, so every delta is a
+  condition's run r minus the `learned` run of the same scene, start and repetition r (the
+  paper's paired changes). Per start, the effect is the mean of those deltas over the
+  repetitions both conditions have (:func:`per_start_effects`).
+- **The unit is the start.** The repetitions of one start are not independent draws from the
+  population of starts, so every pooled cell is the mean of the per-start effects over starts,
+  and its percentile 95% interval comes from a bootstrap that resamples starts with
+  replacement (fixed seed). The `learned` row is absolute: its runs' mean per start, then the
+  mean over starts.
+- **Strata.** Low and High follow the learned baseline's mean final coverage over the
+  repetitions of each start (:func:`strata`): Low below 0.75, High above 0.85, as in the paper.
+- **The placebo** (:func:`placebo_effects`) is the noise floor of every paired row: the same
+  condition against itself. Per start, the learned runs are split into two disjoint halves by a
+  fixed rule, odd positions against even positions in repetition order, and the placebo is
+  mean(odd) − mean(even); with 3 repetitions r1 − mean(r0, r2). With fewer than 2 repetitions
+  it is undefined ("—"). It is pooled over starts like any other row. Splitting halves (and
+  not comparing every repetition with repetition 0) keeps repetition 0's luck out of it.
+  Repetition r runs with seed r at every start, so a seed's luck shared by many starts moves
+  the placebo's pooled mean in a way the bootstrap over starts cannot see.
+- **Per start in Table 2**: the paired gated − learned deltas of the R repetitions, their mean,
+  and an exact two-sided sign-flip permutation p-value (:func:`signflip_p`: all 2^R sign
+  assignments of the deltas; the smallest possible p is 2^(1 − R), 0.25 for R = 3). Across
+  starts the p-values are adjusted by Holm (family-wise error, :func:`holm`) and by
+  Benjamini–Hochberg (false discovery rate, :func:`bh`).
+- **Across starts in Table 2**: a sign test (:func:`sign_test`) on the per-start mean deltas
+  (ties dropped, two-sided binomial against p = 1/2), the count of gated runs whose coverage
+  curve is bit-identical to their learned twin's (:func:`identical_runs`), and the pooled
+  effect on the paper's selection of the learned baseline's largest failures
+  (:func:`paper_selection`). That selection is made on the same learned runs the deltas
+  subtract, so regression to the mean favours the filter on it.
+- **Failure modes** (:func:`failure_modes`, below Table 1): totals over all runs of each
+  condition; a count is shown only when every run records it (older runs lack the fields).
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import matplotlib
 import numpy as np
+from scipy.stats import binomtest, false_discovery_control
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -28,11 +57,30 @@ from mission.metrics import final_coverage, s70  # noqa: E402
 if TYPE_CHECKING:
     from mission.study import RunSpec, StudyConfig
 
+#: A start of the study: (scene, start name).
+Start = tuple[str, str]
+
 LOW, HIGH = 0.75, 0.85
 BASELINE = "learned"
+FILTER = "gated"
+ORACLE = "truth"
+#: How many starts the paper's selection of the learned baseline's largest failures holds.
+SELECTION_SIZE = 6
+#: The level at which a start's adjusted p-value is marked.
+ALPHA = 0.05
+#: Up to this many repetitions the sign-flip test enumerates every sign assignment.
+EXACT_SIGNFLIP_MAX_REPS = 16
 LABELS = {"obs": "Obs. only", "learned-fp": "Learned − FP†", "learned": "Learned (abs.)",
           "learned+fn": "Learned + FN†", "truth": "Ground truth†", "gated": "Obs.-gated filter"}
+PLACEBO_LABEL = "Placebo (learned vs learned)"
 STAGES = ("render", "integrate", "gate", "plan", "execute")
+#: Table 1's metrics: (runs.csv column, heading, digits).
+METRICS = (("final_coverage", "ΔC_T", 3), ("auc", "ΔAUC", 3), ("s70", "ΔS70", 1))
+#: Count fields of metrics.json for the failure modes (absent in older runs: read with .get).
+FAILURE_COUNTS = (("collisions", "collisions, all"),
+                  ("collisions_planner_fault", "collisions, planner fault"),
+                  ("collisions_unseen", "collisions, unseen obstacle"),
+                  ("stuck_steps", "stuck steps"))
 
 
 def bootstrap_ci(values: np.ndarray, resamples: int, seed: int = 0) -> tuple[float, float]:
@@ -78,11 +126,162 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             "suppressed_fp_share": m.get("suppressed_fp_share"),
             "wall_s": m["wall_s"], "median_step_s": m["median_step_s"],
             **{f"{k}_s": stage.get(k) for k in STAGES},
+            # Failure modes; runs written before these keys existed lack them (None, "—").
+            "collisions_planner_fault": m.get("collisions_planner_fault"),
+            "collisions_unseen": m.get("collisions_unseen"),
+            "stuck_steps": m.get("stuck_steps"),
+            "min_clearance_m": m.get("min_clearance_m"),
+            "fp_gain_share": m.get("fp_gain_share"),
+            "rejected_by_fp": m.get("rejected_by_fp"),
             "coverage": m["coverage"],
         })
         curves.setdefault(s.condition, []).append(m["coverage"])
     rows.sort(key=lambda r: (r["scene"], r["start"], r["condition"], r["rep"]))
     return rows, curves
+
+
+# ----------------------------------------------------------------------------- statistics
+
+def _runs(rows: list[dict], condition: str) -> dict[Start, dict[int, dict]]:
+    """The runs of one condition, by start and then by repetition."""
+    out: dict[Start, dict[int, dict]] = {}
+    for r in rows:
+        if r["condition"] == condition:
+            out.setdefault((r["scene"], r["start"]), {})[r["rep"]] = r
+    return out
+
+
+def paired_deltas(rows: list[dict], condition: str, metric: str
+                  ) -> dict[Start, dict[int, float]]:
+    """Per start and repetition r: ``metric`` of the condition's run r minus that of the
+    learned run r (same seed). Repetitions missing either run, or the metric, are left out."""
+    base = _runs(rows, BASELINE)
+    out = {}
+    for k, runs in _runs(rows, condition).items():
+        twins = base.get(k, {})
+        d = {r: run[metric] - twins[r][metric] for r, run in sorted(runs.items())
+             if r in twins and run.get(metric) is not None
+             and twins[r].get(metric) is not None}
+        if d:
+            out[k] = d
+    return out
+
+
+def per_start_effects(rows: list[dict], condition: str, metric: str) -> dict[Start, float]:
+    """Per start: the mean over repetitions of the paired deltas (condition − learned); for
+    the learned condition itself, the absolute mean of its runs."""
+    if condition == BASELINE:
+        means = {k: _mean(run.get(metric) for run in runs.values())
+                 for k, runs in _runs(rows, BASELINE).items()}
+        return {k: m for k, m in means.items() if m is not None}
+    return {k: float(np.mean(list(d.values())))
+            for k, d in paired_deltas(rows, condition, metric).items()}
+
+
+def placebo_effects(rows: list[dict], metric: str) -> dict[Start, float | None]:
+    """Per start: the learned condition against itself, mean(odd) − mean(even).
+
+    The learned runs having ``metric`` are taken in repetition order and split by position:
+    positions 1, 3, ... against positions 0, 2, ... (with repetitions 0, 1, 2: r1 − mean(r0,
+    r2)). The split is fixed before looking at any number. None where a start has fewer than
+    two learned runs."""
+    out: dict[Start, float | None] = {}
+    for k, runs in _runs(rows, BASELINE).items():
+        v = [runs[r][metric] for r in sorted(runs) if runs[r].get(metric) is not None]
+        out[k] = float(np.mean(v[1::2]) - np.mean(v[0::2])) if len(v) >= 2 else None
+    return out
+
+
+def strata(rows: list[dict]) -> dict[str, list[Start]]:
+    """All starts with learned runs, and the Low and High strata by the learned baseline's
+    final coverage averaged over the repetitions of each start."""
+    learned = per_start_effects(rows, BASELINE, "final_coverage")
+    starts = sorted(learned)
+    return {"All": starts,
+            "Low": [k for k in starts if learned[k] < LOW],
+            "High": [k for k in starts if learned[k] > HIGH]}
+
+
+def signflip_p(deltas: list[float] | np.ndarray) -> float:
+    """Two-sided p-value of an exact paired sign-flip permutation test of mean(deltas) = 0.
+
+    Under the null of no effect each paired delta is as likely positive as negative, so every
+    one of the 2^R sign assignments is equally likely; p is the share of them whose |mean| is
+    at least the observed one (the observed assignment included, so p >= 2^(1 − R)). Beyond
+    EXACT_SIGNFLIP_MAX_REPS deltas, 2^16 random assignments (fixed seed) stand in for all."""
+    d = np.asarray(deltas, dtype=np.float64)
+    if len(d) == 0:
+        return float("nan")
+    if len(d) <= EXACT_SIGNFLIP_MAX_REPS:
+        bits = (np.arange(2 ** len(d))[:, None] >> np.arange(len(d))) & 1
+    else:
+        bits = np.random.default_rng(0).integers(0, 2, size=(2 ** 16, len(d)))
+    stats = np.abs(((1 - 2 * bits) * d).mean(axis=1))
+    observed = abs(d.mean())
+    # A relative tolerance: sums in another order must not drop the observed assignment.
+    return float(np.mean(stats >= observed - 1e-12 * max(1.0, observed)))
+
+
+def holm(p: list[float] | np.ndarray) -> np.ndarray:
+    """Holm's step-down adjusted p-values, in the order given: the i-th smallest p is
+    multiplied by (m − i + 1), then made non-decreasing in that order and capped at 1."""
+    p = np.asarray(p, dtype=np.float64)
+    order = np.argsort(p, kind="stable")
+    scaled = p[order] * (len(p) - np.arange(len(p)))
+    adjusted = np.empty_like(p)
+    adjusted[order] = np.minimum(np.maximum.accumulate(scaled), 1.0)
+    return adjusted
+
+
+def bh(p: list[float] | np.ndarray) -> np.ndarray:
+    """Benjamini–Hochberg adjusted p-values (false discovery rate), in the order given."""
+    p = np.asarray(p, dtype=np.float64)
+    return false_discovery_control(p, method="bh") if len(p) else p
+
+
+def sign_test(effects: list[float]) -> dict:
+    """How many starts improve (effect > 0), worsen (< 0) or tie (== 0), and the two-sided
+    binomial p-value of the split of the untied ones against 1/2 (no effect)."""
+    up = sum(1 for e in effects if e > 0)
+    down = sum(1 for e in effects if e < 0)
+    untied = up + down
+    p = binomtest(up, untied, 0.5).pvalue if untied else 1.0
+    return {"improve": up, "worsen": down, "tie": len(effects) - untied,
+            "expected_improve": untied / 2, "p": float(p)}
+
+
+def identical_runs(rows: list[dict], condition: str = FILTER) -> dict[Start, tuple[int, int]]:
+    """Per start: (runs of ``condition`` whose coverage curve equals, bit for bit, that of
+    the learned run of the same repetition, such runs compared). Rows without curves (as
+    runs.csv holds them) are not compared."""
+    base = _runs(rows, BASELINE)
+    out = {}
+    for k, runs in _runs(rows, condition).items():
+        pairs = [(run["coverage"], base[k][r]["coverage"]) for r, run in runs.items()
+                 if r in base.get(k, {}) and run.get("coverage") is not None
+                 and base[k][r].get("coverage") is not None]
+        if pairs:
+            out[k] = (sum(1 for a, b in pairs if list(a) == list(b)), len(pairs))
+    return out
+
+
+def paper_selection(rows: list[dict], starts: list[Start], size: int = SELECTION_SIZE
+                    ) -> dict[str, list[Start] | None]:
+    """The paper's selection of the learned baseline's largest failures, among ``starts``:
+    ``lowest_learned``, the ``size`` starts of lowest mean learned C_T, and
+    ``largest_truth_gap``, those of largest mean paired (truth − learned) C_T (None without
+    truth runs). Ties go to the start named first."""
+    learned = per_start_effects(rows, BASELINE, "final_coverage")
+    gap = per_start_effects(rows, ORACLE, "final_coverage")
+    lowest = sorted((k for k in starts if k in learned), key=lambda k: (learned[k], k))
+    largest = sorted((k for k in starts if k in gap), key=lambda k: (-gap[k], k))
+    return {"lowest_learned": lowest[:size], "largest_truth_gap": largest[:size] or None}
+
+
+# ----------------------------------------------------------------------------- formatting
+
+def _name(k: Start) -> str:
+    return f"{k[0]}/{k[1]}"
 
 
 def _fmt(v: float | None, signed: bool, digits: int) -> str:
@@ -91,7 +290,14 @@ def _fmt(v: float | None, signed: bool, digits: int) -> str:
     return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
 
 
+def _fmt_p(p: float | None) -> str:
+    if p is None or not np.isfinite(p):
+        return "—"
+    return f"{p:.2f}" if p >= 0.01 else f"{p:.1e}"
+
+
 def _cell(values: list[float], signed: bool, digits: int, resamples: int) -> tuple[str, dict]:
+    """A pooled cell: the mean of ``values`` (one per start) and its bootstrap 95% CI."""
     if not values:
         return "—", {"mean": None, "ci95": None, "n": 0}
     m = float(np.mean(values))
@@ -100,90 +306,278 @@ def _cell(values: list[float], signed: bool, digits: int, resamples: int) -> tup
     return text, {"mean": m, "ci95": [lo, hi], "n": len(values)}
 
 
+def _pooled(effects: dict[Start, float | None], keys: list[Start], signed: bool, digits: int,
+            resamples: int) -> tuple[str, dict]:
+    return _cell([effects[k] for k in keys if effects.get(k) is not None], signed, digits,
+                 resamples)
+
+
+def _span(counts: set[int]) -> str:
+    if not counts:
+        return "0"
+    lo, hi = min(counts), max(counts)
+    return str(lo) if lo == hi else f"{lo}–{hi}"
+
+
+# ----------------------------------------------------------------------------- Table 1
+
 def table1(rows: list[dict], conditions: tuple[str, ...], resamples: int, steps: int
            ) -> tuple[str, dict]:
-    """The paper's Table 1: learned absolute, other conditions as mean paired changes."""
-    by = {(r["scene"], r["start"], r["condition"], r["rep"]): r for r in rows}
-    starts = sorted({(r["scene"], r["start"]) for r in rows if r["condition"] == BASELINE
-                     and r["rep"] == 0})
-    base = {k: by[(*k, BASELINE, 0)] for k in starts}
-    groups = {"All": starts,
-              "Low": [k for k in starts if base[k]["final_coverage"] < LOW],
-              "High": [k for k in starts if base[k]["final_coverage"] > HIGH]}
+    """The paper's Table 1 over every repetition: learned absolute, the other conditions as
+    the mean over starts of their per-start mean paired change, and the placebo row."""
+    groups = strata(rows)
     lines = ["| Planner occupancy | Group | ΔC_T | ΔAUC | ΔS70 |", "|---|---|---|---|---|"]
     figures: dict = {}
+    paired_reps = {}
     for c in conditions:
+        runs = _runs(rows, c)
+        effects = {m: per_start_effects(rows, c, m) for m, _, _ in METRICS}
+        if c == BASELINE:
+            paired_reps[c] = {len(v) for v in runs.values()}
+        else:
+            paired_reps[c] = {len(d) for d in paired_deltas(rows, c, "final_coverage").values()}
         for g, keys in groups.items():
-            pairs = [(by[(*k, c, 0)], base[k]) for k in keys if (*k, c, 0) in by]
-            cells = []
-            fig = {}
-            for metric, digits in (("final_coverage", 3), ("auc", 3), ("s70", 1)):
-                if c == BASELINE:
-                    vals = [b[metric] for _, b in pairs]
-                else:
-                    vals = [a[metric] - b[metric] for a, b in pairs]
-                text, fig[metric] = _cell(vals, c != BASELINE, digits, resamples)
+            cells, fig = [], {}
+            for metric, _, digits in METRICS:
+                text, fig[metric] = _pooled(effects[metric], keys, c != BASELINE, digits,
+                                            resamples)
                 cells.append(text)
-            unreached = sum(1 for a, _ in pairs if not a["s70_reached"])
-            fig["s70_unreached"] = unreached
+            fig["s70_unreached"] = sum(1 for k in keys for run in runs.get(k, {}).values()
+                                       if run.get("s70_reached") is False)
             figures.setdefault(c, {})[g] = fig
             name = LABELS.get(c, c) if g == "All" else ""
-            lines.append(f"| {name} | {g} (n={len(pairs)}) | " + " | ".join(cells) + " |")
+            lines.append(f"| {name} | {g} (n={fig['final_coverage']['n']}) | "
+                         + " | ".join(cells) + " |")
+    placebo = {m: placebo_effects(rows, m) for m, _, _ in METRICS}
+    for g, keys in groups.items():
+        cells, fig = [], {}
+        for metric, _, digits in METRICS:
+            text, fig[metric] = _pooled(placebo[metric], keys, True, digits, resamples)
+            cells.append(text)
+        figures.setdefault("placebo", {})[g] = fig
+        name = PLACEBO_LABEL if g == "All" else ""
+        lines.append(f"| {name} | {g} (n={fig['final_coverage']['n']}) | "
+                     + " | ".join(cells) + " |")
     n_unreached = {c: figures[c]["All"]["s70_unreached"] for c in conditions}
+    learned_reps = paired_reps.get(BASELINE, set())
     notes = [
         "",
-        "Learned row: absolute means; other rows: mean paired change from the learned run of "
-        "the same scene, start and repetition (repetition 0). Brackets: paired bootstrap 95% "
-        f"CI ({resamples} resamples). Lower ΔS70 is faster. Low: learned C_T < {LOW}; High: "
-        f"learned C_T > {HIGH}. † ground-truth oracle (diagnosis only).",
+        "n counts starts, the unit of every interval. Learned row: absolute, the mean of each "
+        "start's learned runs, then over starts. Other rows: per start, the mean over "
+        "repetitions r of (condition run r − learned run r, same seed), then the mean over "
+        "starts. Brackets: bootstrap 95% CI resampling starts "
+        f"({resamples} resamples). Repetitions per start: "
+        + ", ".join(f"{LABELS.get(c, c)} {_span(paired_reps[c])}" for c in conditions)
+        + f". Lower ΔS70 is faster. Low: mean learned C_T over the repetitions < {LOW}; "
+        f"High: > {HIGH}. † ground-truth oracle (diagnosis only).",
+        f"{PLACEBO_LABEL}: the noise floor, learned against itself. Per start, the learned "
+        "runs in repetition order are split into two fixed halves, odd positions against even "
+        "ones, and the row gives mean(odd) − mean(even) (with 3 repetitions: r1 − mean(r0, "
+        "r2)), pooled over starts as above; with fewer than 2 learned repetitions it is "
+        f"\"—\" (here {_span(learned_reps)} learned repetitions per start). A condition "
+        "whose interval sits inside the placebo's spread is within run-to-run noise. The "
+        "halves differ in seed, so per start the placebo is, if anything, wider than the null "
+        "of a same-seed paired row (with 3 repetitions it sets one run against the mean of "
+        "two). Repetition r runs with seed r at every start, so a seed that is lucky at many "
+        "starts shifts the placebo at all of them, which the bootstrap over starts does not "
+        "see: a placebo interval away from zero points to such a seed effect, or to chance. "
+        "Its ΔS70 takes each learned run's own C_T as the 70% reference.",
         f"S70 not reached within {steps} steps counts as {steps + 1}; runs that never reached "
         "it: " + ", ".join(f"{LABELS.get(c, c)} {n}" for c, n in n_unreached.items()) + ".",
     ]
     return "\n".join(lines + notes) + "\n", figures
 
 
+def failure_modes(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
+    """Table 1's companion: per condition, over all its runs, the collisions (all, planner
+    fault, unseen obstacle) and stuck steps with the runs that had any, the median of the
+    runs' minimum clearance, the mean share of the chosen viewpoint's gain owed to oracle false
+    positives, and the candidates rejected because of them. A count is shown only when every
+    run reports it (runs from before a field existed make it "—")."""
+    heads = [h for _, h in FAILURE_COUNTS]
+    lines = ["| Planner occupancy | runs | " + " | ".join(heads)
+             + " | min clearance, median (m) | FP gain share, mean | rejected by FP |",
+             "|---|---|" + "---|" * (len(heads) + 3)]
+    figures: dict = {}
+    for c in conditions:
+        runs = [r for r in rows if r["condition"] == c]
+        fig: dict = {"runs": len(runs)}
+        cells = []
+        for key, _ in FAILURE_COUNTS:
+            values = [r.get(key) for r in runs]
+            if runs and all(v is not None for v in values):
+                fig[key] = int(sum(values))
+                fig[f"{key}_runs"] = sum(1 for v in values if v > 0)
+                n = fig[f"{key}_runs"]
+                cells.append(f"{fig[key]} ({n} run{'' if n == 1 else 's'})")
+            else:
+                fig[key] = fig[f"{key}_runs"] = None
+                cells.append("—")
+        clearance = [r["min_clearance_m"] for r in runs
+                     if r.get("min_clearance_m") is not None
+                     and math.isfinite(r["min_clearance_m"])]
+        fig["min_clearance_m_median"] = float(np.median(clearance)) if clearance else None
+        fig["fp_gain_share_mean"] = _mean(v for r in runs if (v := r.get("fp_gain_share"))
+                                          is not None and math.isfinite(v))
+        rejected = [r.get("rejected_by_fp") for r in runs]
+        fig["rejected_by_fp"] = (int(sum(rejected)) if runs
+                                 and all(v is not None for v in rejected) else None)
+        cells += [_fmt(fig["min_clearance_m_median"], False, 2),
+                  _fmt(fig["fp_gain_share_mean"], False, 2),
+                  "—" if fig["rejected_by_fp"] is None else str(fig["rejected_by_fp"])]
+        figures[c] = fig
+        lines.append(f"| {LABELS.get(c, c)} | {len(runs)} | " + " | ".join(cells) + " |")
+    notes = ["", "Totals over every run of the condition (all starts and repetitions), with the "
+             "runs that had any in brackets. Collisions, all: `collisions`; planner fault and "
+             "unseen obstacle: the same collisions as metrics.json classifies them "
+             "(`collisions_planner_fault`, `collisions_unseen`); stuck steps: `stuck_steps`. "
+             "Min clearance: the median over runs of each run's `min_clearance_m`. FP gain "
+             "share: per step, the share of the chosen viewpoint's rendered gain that came "
+             "from oracle false positives, averaged over steps, then over runs (conditions "
+             "without predictions have none). Rejected by FP: candidate viewpoints rejected as "
+             "infeasible because of oracle false positives, summed over runs. \"—\": not "
+             "recorded by these runs."]
+    return "\n".join(lines + notes) + "\n", figures
+
+
+# ----------------------------------------------------------------------------- Table 2
+
 def _mean_std(x: np.ndarray) -> str:
-    return f"{x.mean():.3f} ± {x.std(ddof=1) if len(x) > 1 else 0.0:.3f}"
+    """Mean ± sample std; one value has no std ("—")."""
+    return f"{x.mean():.3f} ± " + (f"{x.std(ddof=1):.3f}" if len(x) > 1 else "—")
 
 
 def table2(rows: list[dict], resamples: int) -> tuple[str, dict]:
-    """The paper's Table 2, on every start: learned against gated, mean ± std over reps."""
-    by = {(r["scene"], r["start"], r["condition"], r["rep"]): r for r in rows}
-    starts = sorted({(r["scene"], r["start"]) for r in rows if r["condition"] == "gated"})
-    lines = ["| Start | Learned baseline | Obs.-gated filter | ΔC_T [95% CI] | reps | "
-             "withheld / step | true FP share |", "|---|---|---|---|---|---|---|"]
-    per_start, figures = {}, {"starts": {}}
-    for k in starts:
-        reps = sorted(r for (sc, st, c, r) in by if (sc, st) == k and c == "gated"
-                      and (sc, st, BASELINE, r) in by)
-        if not reps:
+    """The paper's Table 2 on every start: learned against gated, mean ± std over the
+    repetitions, the mean paired ΔC_T with its sign-flip p-value (raw and Holm-adjusted), and
+    the pooled rows, the paper's selection, the sign test and the bit-identical runs."""
+    deltas = paired_deltas(rows, FILTER, "final_coverage")
+    starts = sorted(deltas)
+    if not starts:
+        return ("No gated run has a learned twin (same start and repetition): nothing to "
+                "compare.\n"), {"starts": {}}
+    learned, gated = _runs(rows, BASELINE), _runs(rows, FILTER)
+    effect = {k: float(np.mean(list(deltas[k].values()))) for k in starts}
+    p_raw = [signflip_p(list(deltas[k].values())) for k in starts]
+    p_holm, p_bh = holm(p_raw), bh(p_raw)
+    identical = identical_runs(rows)
+    placebo = placebo_effects(rows, "final_coverage")
+    lines = ["| Start | Learned baseline | Obs.-gated filter | ΔC_T | reps | p | p (Holm) | "
+             "identical | withheld / step | true FP share |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    figures: dict = {"starts": {}}
+    for i, k in enumerate(starts):
+        reps = list(deltas[k])
+        lc = np.array([learned[k][r]["final_coverage"] for r in reps])
+        gc = np.array([gated[k][r]["final_coverage"] for r in reps])
+        held = _mean(gated[k][r]["suppressed_per_step"] for r in reps)
+        share = _mean(gated[k][r]["suppressed_fp_share"] for r in reps)
+        same = identical.get(k)
+        mark = " *" if p_holm[i] < ALPHA else ""
+        lines.append(f"| {_name(k)} | {_mean_std(lc)} | {_mean_std(gc)} | "
+                     f"{_fmt(effect[k], True, 3)} | {len(reps)} | {_fmt_p(p_raw[i])} | "
+                     f"{_fmt_p(p_holm[i])}{mark} | "
+                     f"{'—' if same is None else f'{same[0]}/{same[1]}'} | "
+                     f"{_fmt(held, False, 0)} | {_fmt(share, False, 2)} |")
+        figures["starts"][_name(k)] = {
+            "learned": lc.tolist(), "gated": gc.tolist(),
+            "delta": {"mean": effect[k], "values": [deltas[k][r] for r in reps],
+                      "n": len(reps)},
+            "p_signflip": p_raw[i], "p_holm": float(p_holm[i]), "p_bh": float(p_bh[i]),
+            "placebo": placebo.get(k),
+            "identical": None if same is None else {"runs": same[0], "of": same[1]}}
+
+    # Pooled over starts, each beside its placebo (the same starts' learned-vs-learned split).
+    # Rows: (label, where in figures, starts); the strata keep their summary.json keys.
+    groups = strata(rows)
+    selection = paper_selection(rows, starts)
+    size = SELECTION_SIZE
+    pooled = [
+        ("All starts", ("All starts",), starts),
+        (f"Low (mean learned C_T < {LOW})", (f"Low (learned C_T < {LOW})",),
+         [k for k in groups["Low"] if k in effect]),
+        (f"High (mean learned C_T > {HIGH})", (f"High (learned C_T > {HIGH})",),
+         [k for k in groups["High"] if k in effect]),
+        (f"Selection (a): {size} lowest mean learned C_T", ("selection", "lowest_learned"),
+         selection["lowest_learned"]),
+        (f"Selection (b): {size} largest truth − learned gap",
+         ("selection", "largest_truth_gap"), selection["largest_truth_gap"]),
+    ]
+    table = ["| Starts | n | ΔC_T gated − learned [95% CI] | placebo learned − learned "
+             "[95% CI] |", "|---|---|---|---|"]
+    for label, where, keys in pooled:
+        if keys is None:  # no truth runs: no selection (b)
+            figures.setdefault(where[0], {})[where[-1]] = None
+            table.append(f"| **{label}** | 0 | — (no truth runs) | — |")
             continue
-        lc = np.array([by[(*k, BASELINE, r)]["final_coverage"] for r in reps])
-        gc = np.array([by[(*k, "gated", r)]["final_coverage"] for r in reps])
-        d = gc - lc
-        text, fig = _cell(list(d), True, 3, resamples)
-        held = _mean([by[(*k, "gated", r)]["suppressed_per_step"] for r in reps])
-        share = _mean([by[(*k, "gated", r)]["suppressed_fp_share"] for r in reps])
-        per_start[k] = float(d.mean())
-        lines.append(f"| {k[0]}/{k[1]} | {_mean_std(lc)} | {_mean_std(gc)} | {text} | "
-                     f"{len(reps)} | {_fmt(held, False, 0)} | {_fmt(share, False, 2)} |")
-        figures["starts"][f"{k[0]}/{k[1]}"] = {"learned": lc.tolist(), "gated": gc.tolist(),
-                                               "delta": fig}
-    base0 = {k: by[(*k, BASELINE, 0)]["final_coverage"] for k in per_start
-             if (*k, BASELINE, 0) in by}
-    groups = {"All starts": list(per_start),
-              f"Low (learned C_T < {LOW})": [k for k in per_start if base0.get(k, 1) < LOW],
-              f"High (learned C_T > {HIGH})": [k for k in per_start if base0.get(k, 0) > HIGH]}
-    for g, keys in groups.items():
-        text, fig = _cell([per_start[k] for k in keys], True, 3, resamples)
-        figures[g] = fig
-        lines.append(f"| **{g}** (n={len(keys)}) | | | {text} | | | |")
-    notes = ["", "Final coverage, mean ± std over repetitions (seed = repetition). ΔC_T: mean "
-             "paired change (gated − learned, same seed); per start, the CI resamples its "
-             "repetitions, in the pooled rows it resamples starts. Withheld / step: points the "
-             "gate withheld per step; true FP share: of those, the share farther than "
-             "0.03 d_scene from the true surface (evaluation only)."]
-    return "\n".join(lines + notes) + "\n", figures
+        text, fig = _pooled(effect, keys, True, 3, resamples)
+        ptext, fig["placebo"] = _pooled(placebo, keys, True, 3, resamples)
+        if fig["placebo"]["n"] not in (0, len(keys)):
+            ptext += f" (n={fig['placebo']['n']})"
+        fig["starts"] = [_name(k) for k in keys]
+        if len(where) == 1:
+            figures[where[0]] = fig
+        else:
+            figures.setdefault(where[0], {})[where[1]] = fig
+        table.append(f"| **{label}** | {len(keys)} | {text} | {ptext} |")
+
+    tests = sign_test(list(effect.values()))
+    pairs = [identical[k] for k in starts if k in identical]
+    same_total = (sum(a for a, _ in pairs), sum(b for _, b in pairs)) if pairs else None
+    n_holm = int(np.sum(p_holm < ALPHA))
+    n_bh = int(np.sum(p_bh < ALPHA))
+    figures["sign_test"] = tests
+    figures["identical"] = (None if same_total is None
+                            else {"runs": same_total[0], "of": same_total[1]})
+    figures["significant"] = {"alpha": ALPHA, "holm": n_holm, "bh": n_bh, "starts": len(starts)}
+
+    rep_counts = {len(deltas[k]) for k in starts}
+    r_min, r_max, m = min(rep_counts), max(rep_counts), len(starts)
+    # The repetitions a start needs before Holm over m starts can reach ALPHA at all.
+    r_needed = next(r for r in range(1, 64) if m * 2.0 ** (1 - r) < ALPHA)
+    reach = (f"Over {m} starts, Holm can reach {ALPHA} only with R >= {r_needed} "
+             "repetitions" + ("; here no single start can, and the pooled rows and the sign "
+                              "test are the tests this study can pass." if r_max < r_needed
+                              else "."))
+    after = [
+        "",
+        "Pooled over starts (bootstrap 95% CI resampling starts, "
+        f"{resamples} resamples), each beside the placebo of the same starts:",
+        "",
+        *table,
+        "",
+        *(f"Selection ({n}): " + ", ".join(figures["selection"][g]["starts"]) + "."
+          for n, g in (("a", "lowest_learned"), ("b", "largest_truth_gap"))
+          if figures["selection"][g] is not None),
+        "",
+        f"**Sign test over starts** (mean ΔC_T per start): {tests['improve']} improve, "
+        f"{tests['worsen']} worsen, {tests['tie']} tie; with no effect "
+        f"{tests['expected_improve']:g} of the {tests['improve'] + tests['worsen']} untied "
+        f"would be expected to improve; two-sided binomial p = {_fmt_p(tests['p'])} "
+        "(ties dropped).",
+        "",
+        "**Bit-identical gated runs**: " + (
+            f"{same_total[0]} of {same_total[1]} gated runs have the same coverage curve as "
+            "their learned twin (same start and seed): on them the gate changed nothing the "
+            "planner acted on, and their delta is exactly 0 (per start: `identical`)."
+            if same_total else "— (no coverage curves in these rows)."),
+        "",
+        "Final coverage, mean ± std over repetitions (seed = repetition). ΔC_T: per start, "
+        "the mean of the paired changes (gated − learned, same seed). p: exact two-sided "
+        "sign-flip permutation test of those R paired changes (all 2^R sign assignments); its "
+        f"smallest possible value is 2^(1 − R), {2.0 ** (1 - r_min):.2f} with R = {r_min}, "
+        "and it is what a start gets whose R changes all have one sign: with 3 repetitions, "
+        "three gains in three runs are p = 0.25, not a finding. p (Holm): adjusted for the "
+        f"{m} starts tested (family-wise); * marks p (Holm) < {ALPHA} ({n_holm} starts; "
+        f"Benjamini–Hochberg, in summary.json: {n_bh}). {reach} Low and High: by the mean "
+        "learned C_T over the repetitions of each start. Selections (a) and (b) are the "
+        "paper's choice of the learned baseline's largest failures; they select on the same "
+        "learned runs that the deltas subtract, so regression to the mean favours the filter "
+        "there, and the placebo (whose halves were both selected) does not show that bias. "
+        "Withheld / step: points the gate withheld per step; true FP share: of those, the "
+        "share farther than 0.03 d_scene from the true surface (evaluation only).",
+    ]
+    return "\n".join(lines + after) + "\n", figures
 
 
 def plot_curves(curves: dict[str, list], out: Path) -> list[str]:
@@ -210,6 +604,8 @@ def plot_curves(curves: dict[str, list], out: Path) -> list[str]:
 
 
 def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
+    """runs.csv, table1.md (with the failure modes below it), table2.md, the plots,
+    coverage_curves.csv and summary.json of the study in ``out``."""
     rows, curves = load_rows(specs, out / "runs")
     if rows:
         with open(out / "runs.csv", "w", newline="") as f:
@@ -218,11 +614,13 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
             w.writeheader()
             w.writerows(rows)
     t1, f1 = table1(rows, cfg.conditions, cfg.bootstrap, cfg.steps)
+    tf, ff = failure_modes(rows, cfg.conditions)
     t2, f2 = table2(rows, cfg.bootstrap)
     header = (f"Platform {cfg.platform}, {cfg.steps} steps, scenes {', '.join(cfg.scenes)}, "
               f"starts {', '.join(cfg.starts)}.\n\n")
     (out / "table1.md").write_text("# Table 1: controlled occupancy interventions\n\n"
-                                   + header + t1)
+                                   + header + t1 + "\n## Failure modes per condition\n\n"
+                                   + tf)
     (out / "table2.md").write_text("# Table 2: final coverage, learned against the "
                                    "observation-gated filter\n\n" + header + t2)
     plots = plot_curves(curves, out)
@@ -245,7 +643,7 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
         "run_wall_s_sum": float(sum(r["wall_s"] for r in rows)),
         "median_step_s": float(np.median([r["median_step_s"] for r in rows])) if rows else None,
         "median_stage_s": stages,
-        "table1": f1, "table2": f2, "plots": plots,
+        "table1": f1, "failure_modes": ff, "table2": f2, "plots": plots,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

@@ -91,9 +91,13 @@ def test_table2_gives_mean_and_std_over_repetitions_per_start():
         rows += [_row("s", "a", "learned", rep, lc, 0, 0),
                  _row("s", "a", "gated", rep, gc, 0, 0, held=10.0, share=0.5)]
     text, fig = table2(rows, 1000)
-    assert "| s/a | 0.600 ± 0.100 | 0.700 ± 0.100 | +0.100 [" in text
+    # Deltas +0.1, 0, +0.2: half of the 8 sign assignments reach |mean| 0.1, so p = 0.5;
+    # one start, so Holm leaves it; no curves, so no bit-identical count.
+    assert "| s/a | 0.600 ± 0.100 | 0.700 ± 0.100 | +0.100 | 3 | 0.50 | 0.50 | — | 10 | 0.50 |" \
+        in text
     assert fig["starts"]["s/a"]["delta"]["mean"] == pytest.approx(0.1)
     assert fig["starts"]["s/a"]["delta"]["n"] == 3
+    assert fig["starts"]["s/a"]["p_signflip"] == pytest.approx(0.5)
 
 
 #: A small study: 10 runs of 3 steps.
