@@ -1,20 +1,20 @@
 """Seen-ness: one rule for every point the planner receives, in every condition.
 
-A map point x has been *viewed* in a frame when the camera of that frame saw the place where
-it lies: x is in front of the camera within the sensor's usable range, it projects inside the
+A map point x has been *viewed* in a frame when the camera of that frame saw the place where it
+lies: x is in front of the camera within the sensor's usable range, it projects inside the
 image, and the frame's depth at its pixel is a valid return that ends no nearer than x minus
-``tolerance_m`` (the ray reached x; a nearer return means something hid it, a missing return
-gives no evidence). Its views are the number of frames so far that viewed it. The planner's
-gain counts a point as novel until it has ``observed_min_views`` views, whatever its source:
-observed surface, prediction or reference point (MAGICIAN's gain, likewise, counts what the
-past camera poses saw). The tolerance (``GateConfig.view_tolerance_m``) defaults to the
-planner's z-buffer tolerance, so a past view "saw" a point when a candidate view at that pose
-would have counted it.
+``tolerance_m``, or +Inf (nothing within range): the ray reached x. A nearer return means
+something hid it; an invalid return (NaN) gives no evidence. Its views are the number of frames
+so far that viewed it. The planner's gain counts a point as novel until it has
+``observed_min_views`` views, whatever its source: observed surface, prediction or reference
+point (MAGICIAN's gain, likewise, counts what the past camera poses saw). The tolerance
+(``GateConfig.view_tolerance_m``) defaults to the planner's z-buffer tolerance, so a past view
+"saw" a point when a candidate view at that pose would have counted it.
 
-Counting is incremental and exact: the observed surface S_t and the reference O* only grow
-(or stay), so their counts carry over and each step adds the newest frame; predicted and
-oracle points are matched to last step's by their exact coordinates, and only points that are
-new are counted against every past frame.
+Counting is incremental and exact: the observed surface S_t and the reference O* only grow (or
+stay), so their counts carry over and each step adds the newest frame; predicted and oracle
+points are matched to last step's by their exact coordinates, and only points that are new are
+counted against every past frame.
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ class ViewCounter:
             ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
             idx = np.flatnonzero(ok)
             d = frame.depth[v[idx], u[idx]]
-            seen = np.isfinite(d) & (d > 0) & (d >= z[idx] - self.tolerance_m)
+            seen = d >= z[idx] - self.tolerance_m  # NaN (no valid return) compares False
             out[idx[seen]] += 1
         return out
 

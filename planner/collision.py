@@ -11,7 +11,8 @@ The rover's limits are checked on the same estimate: the plane fitted to the low
 of the cells around a pose must be no steeper than the slope limit, and none of them farther
 from it than the step limit (cells without points are unknown and pass, unless the rover drives
 on known ground only). The flyer's model (:class:`FlyerCollisionModel`) keeps its sphere clear
-of every map point and between its altitude limits over the estimated ground.
+of every map point and between its altitude limits over the estimated ground, and, given the
+known free space (:mod:`planner.freespace`), its centre out of the unknown.
 
 Everything reads the same planner-facing map as the gain: a hallucinated point both attracts
 the platform and blocks its way, as in the paper.
@@ -25,6 +26,7 @@ import fcl
 import numpy as np
 from scipy.ndimage import minimum_filter
 
+from planner.freespace import FreeSpace
 from rovergate.config import FlyerConfig, RoverConfig
 from rovergate.spatial import kdtree
 
@@ -193,9 +195,11 @@ class FlyerCollisionModel:
     """The flyer's check on one step's planner-facing occupancy: a sphere among points."""
 
     def __init__(self, points_map: np.ndarray, flyer: FlyerConfig, ground: OccupancyCollisionModel,
-                 margin_m: float = 0.1) -> None:
+                 margin_m: float = 0.1, free: FreeSpace | None = None) -> None:
+        """``free``: the known free space; with it, the sphere's centre must lie in it."""
         self.cfg = flyer
         self.ground = ground
+        self.free = free
         self.reach = flyer.radius_m + margin_m
         self._tree = kdtree(points_map) if len(points_map) else None
         self.checks = 0
@@ -212,6 +216,8 @@ class FlyerCollisionModel:
             lo, hi = self.altitude_band(x, y)
             if not lo <= z <= hi:
                 return False
+        if self.free is not None and not self.free.is_free(x, y, z):
+            return False
         if self._tree is None:
             return True
         d, _ = self._tree.query((x, y, z), distance_upper_bound=self.reach)
@@ -226,6 +232,8 @@ class FlyerCollisionModel:
             g = self.ground.ground_z_many(xyz[:, :2])
             z = xyz[:, 2] - g
             ok = (z >= self.cfg.min_altitude_m) & (z <= self.cfg.max_altitude_m)
+        if self.free is not None:
+            ok &= self.free.free_many(xyz)
         if self._tree is not None and ok.any():
             d, _ = self._tree.query(xyz[ok], distance_upper_bound=self.reach)
             ok[ok] = ~np.isfinite(d)

@@ -7,6 +7,7 @@ import logging
 import time
 from typing import Any, ClassVar
 
+from planner.freespace import FreeSpace
 from planner.planner import make_planner
 from rovergate.config import MissionConfig
 from rovergate.graph import MODULES, Module
@@ -16,18 +17,30 @@ log = logging.getLogger("rovergate.planner")
 
 
 class PlannerNode(LogicDefaults):
-    """:class:`rovergate.module.ModuleLogic` of the planner. It keeps no state between steps
-    (its random draws are seeded by seed and step): a restarted one needs only the inputs of
-    the step it resumes at."""
+    """:class:`rovergate.module.ModuleLogic` of the planner. Its random draws are seeded by
+    seed and step; its one state is the flyer's known free space (carved from every frame so
+    far and where the flyer has been), which a restarted planner rebuilds by replaying them."""
 
     spec: ClassVar[Module] = MODULES["planner"]
 
     def __init__(self, cfg: MissionConfig, ask: Ask | None = None) -> None:
+        self.cfg = cfg
         self.planner = make_planner(cfg)
+        self.free = None
+        if cfg.platform == "flyer" and cfg.planner.known_free_only:
+            b, f, s = cfg.scene.bounds_m, cfg.flyer, cfg.sensor
+            self.free = FreeSpace((b[0], b[1], b[2] - 1.0, b[3], b[4], b[5] + f.max_altitude_m),
+                                  cfg.planner.free_voxel_m, s.min_range_m, s.max_range_m)
+
+    def restore(self, step: int, inputs: dict[str, Any]) -> None:
+        if self.free is not None:
+            self.free.add_frame(inputs["pose"].matrix(), inputs["info"], inputs["depth"])
+            self.free.add_body(inputs["base"].position, self.cfg.flyer.radius_m)
 
     def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()
-        result = self.planner.plan(step, inputs["map"], inputs["base"])
+        self.restore(step, inputs)
+        result = self.planner.plan(step, inputs["map"], inputs["base"], self.free)
         seconds = time.perf_counter() - t0
         log.debug("step %d: %s, gain %d after %d attempts", step, result.reason, result.gain,
                   result.attempts)

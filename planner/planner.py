@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planner.freespace import FreeSpace
 from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
@@ -42,17 +43,20 @@ class Planner(abc.ABC):
         self.cfg = cfg
 
     @abc.abstractmethod
-    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
-        """The motion for step ``step``."""
+    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
+             free: FreeSpace | None = None) -> PlanResult:
+        """The motion for step ``step`` (``free``: the known free space, which the flyer
+        keeps to)."""
 
-    def _setup(self, step: int, occupancy: PlannerMap, T_map_base: Pose
+    def _setup(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
+               free: FreeSpace | None = None
                ) -> tuple[MotionModel, np.random.Generator, GainField]:
         """One step's motion model, random generator (seeded by seed and step) and gain field,
         all read from the same planner-facing map."""
         cfg, pc = self.cfg, self.cfg.planner
         points = xyz(occupancy.points)
         model = motion_model(cfg, points, T_map_base,
-                             predicted=occupancy.points["source"] == Source.PREDICTED)
+                             predicted=occupancy.points["source"] == Source.PREDICTED, free=free)
         rng = np.random.default_rng([cfg.seed, step])
         return model, rng, gain_field(cfg, points, novel_mask(occupancy, pc.observed_min_views))
 
@@ -100,9 +104,10 @@ class GreedyPlanner(Planner):
     checked against the same map) until one is feasible within the budget.
     """
 
-    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
+    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
+             free: FreeSpace | None = None) -> PlanResult:
         cfg, pc = self.cfg, self.cfg.planner
-        model, rng, field = self._setup(step, occupancy, T_map_base)
+        model, rng, field = self._setup(step, occupancy, T_map_base, free)
         candidates = model.sample(rng, pc.n_candidates)
         gains = np.array([field.gain(field.visible(model.camera(c))) for c in candidates],
                          dtype=np.int64)
@@ -153,9 +158,10 @@ class BeamPlanner(Planner):
     other trajectories are tried in the order of their best continuation.
     """
 
-    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose) -> PlanResult:
+    def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
+             free: FreeSpace | None = None) -> PlanResult:
         cfg, pc = self.cfg, self.cfg.planner
-        model, rng, field = self._setup(step, occupancy, T_map_base)
+        model, rng, field = self._setup(step, occupancy, T_map_base, free)
         dims = 3 if cfg.platform == "flyer" else 2
 
         def extend(node: _Trajectory, n: int) -> list[_Trajectory]:

@@ -22,6 +22,7 @@ import abc
 import numpy as np
 
 from planner.collision import FlyerCollisionModel, OccupancyCollisionModel
+from planner.freespace import FreeSpace
 from planner.motion import plan_r3, plan_se2
 from rovergate.config import MissionConfig, RoverConfig
 from rovergate.geometry import camera_from_base
@@ -139,7 +140,8 @@ def outside_body(points: np.ndarray, T_map_base: Pose, rover: RoverConfig,
 
 class RoverModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None) -> None:
+                 predicted: np.ndarray | None = None, free: FreeSpace | None = None) -> None:
+        # The rover's counterpart of known free space is known ground (drive_known_ground_only).
         keep = outside_body(points, T_map_base, cfg.rover)
         super().__init__(cfg, points[keep], T_map_base,
                          None if predicted is None else predicted[keep])
@@ -189,9 +191,9 @@ class RoverModel(MotionModel):
 
 class FlyerModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None) -> None:
+                 predicted: np.ndarray | None = None, free: FreeSpace | None = None) -> None:
         super().__init__(cfg, points, T_map_base, predicted)
-        self.sphere = FlyerCollisionModel(points, cfg.flyer, self.ground)
+        self.sphere = FlyerCollisionModel(points, cfg.flyer, self.ground, free=free)
 
     def _fallback_ground(self, T: Pose) -> float:
         return float(T.position[2]) - self.cfg.flyer.altitude_m
@@ -264,8 +266,10 @@ class FlyerModel(MotionModel):
 
 
 def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None) -> MotionModel:
+                 predicted: np.ndarray | None = None, free: FreeSpace | None = None
+                 ) -> MotionModel:
     """The motion model of ``cfg.platform`` for one step; ``predicted`` marks the points that
-    are predictions (the map's ``source``)."""
+    are predictions (the map's ``source``); ``free`` is the known free space (the flyer keeps
+    to it)."""
     return (FlyerModel if cfg.platform == "flyer" else RoverModel)(cfg, points, T_map_base,
-                                                                   predicted)
+                                                                   predicted, free)

@@ -31,7 +31,7 @@ def incidence_cos(depth: np.ndarray, k: CameraIntrinsics) -> np.ndarray:
     the normal is unknown: no return at the pixel or its neighbours)."""
     h, w = depth.shape
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    z = depth.astype(np.float64)
+    z = np.where(np.isfinite(depth), depth, np.nan).astype(np.float64)  # +Inf: no surface
     P = np.stack([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z], axis=-1)
     du = np.gradient(P, axis=1)
     dv = np.gradient(P, axis=0)
@@ -80,7 +80,7 @@ class Sensing:
             out[np.nan_to_num(cos, nan=1.0) < np.cos(np.radians(c.grazing_max_deg))] = np.nan
         if c.noise_frac > 0:
             noise = rng.standard_normal(out.shape).astype(np.float32)
-            out += noise * np.float32(c.noise_frac) * np.nan_to_num(depth)
+            out += noise * np.float32(c.noise_frac) * np.where(np.isfinite(depth), depth, 0)
         out[self.dropout_mask(out.shape, rng)] = np.nan
         return out
 

@@ -89,9 +89,13 @@ class PyBulletWorld:
         zbuf = np.asarray(zbuf, dtype=np.float64).reshape(s.height_px, s.width_px)
         seg = np.asarray(seg).reshape(s.height_px, s.width_px)
         depth = self.far_m * NEAR_M / (self.far_m - (self.far_m - NEAR_M) * zbuf)
-        invalid = (zbuf >= 1.0 - 1e-7) | (depth < s.min_range_m) | (depth > s.max_range_m)
+        # REP 117: +Inf where nothing is within the maximum range (the ray passed through all
+        # of it), NaN where there is no valid return (too near, or the rover's own body).
+        nothing = (zbuf >= 1.0 - 1e-7) | (depth > s.max_range_m)
+        invalid = depth < s.min_range_m
         if self.rover_id >= 0:
             invalid |= (seg == self.rover_id) | (seg == self.mast_id)
+        depth = np.where(nothing, np.inf, depth)
         return np.where(invalid, np.nan, depth).astype(np.float32)
 
     def close(self) -> None:

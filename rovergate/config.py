@@ -217,7 +217,8 @@ class PlannerConfig:
     zbuffer_tolerance_m: float = 0.3
     """A point is visible when it lies at most this far behind the z-buffer's nearest point."""
     observed_min_views: int = 2
-    """A map point counts as observed once S_t has a point within tau seen in this many frames."""
+    """A map point stops being novel once this many frames have seen its place (its
+    ``views``, counted by the gate: gate/views.py)."""
     max_attempts: int = 8
     """Candidates (best gain first) tried with OMPL before giving up on a step."""
     ompl_max_checks: int = 3000
@@ -226,6 +227,11 @@ class PlannerConfig:
     """Rover: drive only where the map has ground under the wheels (observed or predicted),
     except within a body length of where it stands; the mast camera cannot see the ground
     next to the rover, and unknown is not free."""
+    known_free_only: bool = True
+    """Flyer: fly only through space known to be free, where a camera ray passed or the
+    flyer has been (planner/freespace.py); unknown is not free."""
+    free_voxel_m: float = 0.25
+    """Voxel of the flyer's known free space."""
     ground_cell_m: float = 0.5
     """Cell of the ground-height grid the collision model derives from the map."""
     obstacle_voxel_m: float = 0.15
@@ -368,6 +374,7 @@ def check_values(cfg: MissionConfig) -> None:
             ("--planner.gain-voxel-m", cfg.planner.gain_voxel_m),
             ("--planner.gain-resolution", cfg.planner.gain_resolution),
             ("--planner.segment-check-m", cfg.planner.segment_check_m),
+            ("--planner.free-voxel-m", cfg.planner.free_voxel_m),
             ("--rover.check-spacing-m", cfg.rover.check_spacing_m),
             ("--sensor.min-range-m", cfg.sensor.min_range_m)):
         if not value > 0:

@@ -45,7 +45,8 @@ class Topic:
 #: Every topic of the system. The README's topic table lists the same entries.
 TOPICS: dict[str, Topic] = {
     "depth": Topic("sensor/depth", "sensor_msgs/msg/Image",
-                   "depth in metres (32FC1), NaN where there is no return"),
+                   "depth in metres (32FC1), REP 117: +Inf where nothing is within the "
+                   "maximum range, NaN where the return is invalid (dropped, too near)"),
     "camera_info": Topic("sensor/camera_info", "sensor_msgs/msg/CameraInfo",
                          "intrinsics (`k`), pixel centres at integers"),
     "pose": Topic("sensor/pose", "geometry_msgs/msg/PoseStamped",
@@ -171,8 +172,11 @@ MODULES: dict[str, Module] = {m.name: m for m in [
            reads=("condition", "scene", "gate", "sensor", "mapper"),
            last_step_offset=-1),
     Module("planner", "the planner: the next motion from the planner-facing map",
-           inputs={"map": Input("planner_map"), "base": Input("base_pose")},
+           inputs={"map": Input("planner_map"), "base": Input("base_pose"),
+                   "depth": Input("depth"), "pose": Input("pose"),
+                   "info": Input("camera_info")},
            outputs=("rejected", "path"), stages=("plan",),
+           replay=("base", "depth", "pose", "info"),
            reads=("scene", "platform", "seed", "sensor", "rover", "flyer", "planner", "mapper"),
            last_step_offset=-1),
     Module("mission", "the mission manager: the clock, coverage, the record, the ground link",

@@ -190,7 +190,8 @@ def test_incremental_views_equal_a_recount():
     rng = np.random.default_rng(0)
     views = ViewCounter(0.3, 20.0, tolerance_m=0.3)
     surface = rng.uniform([2, -5, -2], [15, 5, 3], (50, 3)).astype(np.float32)
-    for step in range(6):
+    last_pred = None
+    for _ in range(6):
         T = camera_looking_along_x(rng.uniform(-1, 1))
         depth = rng.uniform(3, 18, (K.height, K.width)).astype(np.float32)
         depth[rng.uniform(size=depth.shape) < 0.2] = np.nan
@@ -198,7 +199,7 @@ def test_incremental_views_equal_a_recount():
         surface = np.vstack([surface, rng.uniform([2, -5, -2], [15, 5, 3], (20, 3))]
                             ).astype(np.float32)
         pred = rng.uniform([2, -5, -2], [15, 5, 3], (40, 3)).astype(np.float32)
-        if step:
+        if last_pred is not None:
             pred[:20] = last_pred[20:]  # half of it carried over from the last step
         last_pred = pred
         assert np.array_equal(views.views_grown("s", surface), views.count(surface))
