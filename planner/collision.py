@@ -1,11 +1,12 @@
 """Collision checking of the rover body against the planner-facing occupancy, with FCL.
 
 The map is a point set, so the ground itself is made of points. The model first estimates the
-ground: the lowest map point in each ``ground_cell_m`` cell, then the lowest over the rover's
-footprint around it. A map point is an obstacle when it stands between the body's clearance
-and its top above that ground (overhangs higher than the body are passed under; pebbles lower
-than the clearance are driven over). Each obstacle point becomes a small box in an FCL
-broad-phase manager; the rover is the box of its body, placed on the estimated ground.
+ground: the lowest map point in each ``ground_cell_m`` cell, and the plane fitted to those of
+the 3 x 3 cells around each. A map point is an obstacle when it stands between the body's
+clearance and its top above its local plane (overhangs higher than the body are passed under;
+pebbles lower than the clearance are driven over). Each obstacle point becomes a small box in
+an FCL broad-phase manager at its height above the plane; the rover is the box of its body in
+the same plane-relative heights, as its body tilts with the ground.
 
 The rover's limits are checked on the same estimate: the plane fitted to the lowest map points
 of the cells around a pose must be no steeper than the slope limit, and none of them farther
@@ -29,6 +30,11 @@ from scipy.ndimage import minimum_filter
 from planner.freespace import FreeSpace
 from rovergate.config import FlyerConfig, RoverConfig
 from rovergate.spatial import kdtree
+
+_OFFSETS = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+
+BODY_MARGIN_M = 0.1
+"""The rover's body as the planner checks it is this much larger on every side."""
 
 
 class OccupancyCollisionModel:
@@ -65,20 +71,39 @@ class OccupancyCollisionModel:
         size = 2 * int(np.ceil(half_diag / ground_cell_m)) + 1
         self.raw_ground = grid
         self.ground = minimum_filter(grid, size=size, mode="nearest")
-
-        h = points_map[inside, 2] - self.ground[ij[inside, 0], ij[inside, 1]]
-        obstacle = (h > rover.clearance_m) & (h < rover.body_top_m)
-        self.obstacle_points = points_map[inside][obstacle]
+        self._terrain: tuple[np.ndarray, np.ndarray] | None = None
+        self._plane: np.ndarray | None = None
+        self._inside = (points_map[inside], ij[inside])
+        self._obstacles: np.ndarray | None = None
         self._edge = obstacle_voxel_m
         self._manager: fcl.DynamicAABBTreeCollisionManager | None = None  # built on first use
+        # The body, widened by BODY_MARGIN_M on every side: the map samples surfaces, and a
+        # corner must not slip between two samples of a rock.
         body_h = rover.body_top_m - rover.clearance_m
-        self._body = fcl.CollisionObject(fcl.Box(rover.length_m, rover.width_m, body_h))
+        self._body = fcl.CollisionObject(fcl.Box(rover.length_m + 2 * BODY_MARGIN_M,
+                                                 rover.width_m + 2 * BODY_MARGIN_M, body_h))
         self._body_dz = rover.clearance_m + body_h / 2
         self.checks = 0
-        self._terrain: tuple[np.ndarray, np.ndarray] | None = None
         self.known_ground_only = False
         self.home: tuple[float, float] | None = None
         self.home_radius = float(np.hypot(rover.length_m, rover.width_m))
+
+    @property
+    def obstacle_points(self) -> np.ndarray:
+        """(M, 3) the obstacle points as (x, y, height above their local ground plane).
+
+        Obstacles stand out of the local ground plane (fitted to the lowest points of the
+        cells around theirs), not out of the lowest ground nearby: on a slope, the lowest
+        ground a body length away lies far below, and the slope itself would be an obstacle.
+        The body is checked in the same plane-relative heights (the terrain "flattened"), as
+        the rover's body tilts with the ground it stands on. Computed on first use (the
+        flyer's checks never need it)."""
+        if self._obstacles is None:
+            pts, ij = self._inside
+            h = pts[:, 2] - self._ground_plane(pts[:, :2], ij)
+            keep = (h > self.rover.clearance_m) & (h < self.rover.body_top_m)
+            self._obstacles = np.c_[pts[keep, :2], h[keep]]
+        return self._obstacles
 
     def _build_manager(self) -> fcl.DynamicAABBTreeCollisionManager:
         """The FCL broad phase over the obstacle points (built only when the body is checked:
@@ -135,30 +160,67 @@ class OccupancyCollisionModel:
         """
         raw = self.raw_ground
         K = np.isfinite(raw).astype(np.float64)
-        Zk = np.where(K > 0, raw, 0.0)
-        Kp, Zp = np.pad(K, 1), np.pad(Zk, 1)
-        h, w = raw.shape
-        offs = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
+        Z = np.where(K > 0, raw, 0.0)
+        known, coef = self._fit(K, Z)
+        ok = np.hypot(coef[..., 1], coef[..., 2]) <= np.tan(np.radians(self.rover.slope_limit_deg))
+        above = np.zeros(raw.shape, dtype=bool)  # cells standing out of some window's plane
+        for _, _, k, z, plane in self._residuals(K, Z, coef):
+            ok &= ~k | (np.abs(z - plane) <= self.rover.step_limit_m)
+        # The ground plane obstacles are measured from: refitted without the cells that stand
+        # out of the first fit by more than half the step limit (a cell whose lowest point is
+        # a rock's top would otherwise lift the plane, and hide the rock).
+        for di, dj, k, z, plane in self._residuals(K, Z, coef):
+            out = k & (z - plane > self.rover.step_limit_m / 2)
+            h, w = raw.shape
+            above[max(di, 0):h + min(di, 0), max(dj, 0):w + min(dj, 0)] |= \
+                out[max(-di, 0):h - max(di, 0), max(-dj, 0):w - max(dj, 0)]
+        Kr = K * ~above
+        _, self._plane = self._fit(Kr, Z)
+        self._plane_known = known
+        return known, ok | ~known
+
+    def _fit(self, K: np.ndarray, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Least-squares planes over the 3 x 3 windows: (known, coef), coef (h, w, 3) the
+        height at the cell centre and the slopes in x and y; known: at least 4 cells."""
+        Kp, Zp = np.pad(K, 1), np.pad(Z, 1)
+        h, w = K.shape
         M = np.zeros((h, w, 3, 3))
         r = np.zeros((h, w, 3))
-        for di, dj in offs:
+        n = np.zeros((h, w))
+        for di, dj in _OFFSETS:
             k = Kp[1 + di:1 + di + h, 1 + dj:1 + dj + w]
             z = Zp[1 + di:1 + di + h, 1 + dj:1 + dj + w]
             f = np.array([1.0, dj * self.cell, di * self.cell])
             M += k[..., None, None] * np.outer(f, f)
             r += (k * z)[..., None] * f
-        known = sum(
-            Kp[1 + di:1 + di + h, 1 + dj:1 + dj + w] for di, dj in offs) >= 4
+            n += k
+        known = n >= 4
         M[~known] = np.eye(3)
         r[~known] = 0.0
-        coef = np.linalg.solve(M, r[..., None])[..., 0]
-        ok = np.hypot(coef[..., 1], coef[..., 2]) <= np.tan(np.radians(self.rover.slope_limit_deg))
-        for di, dj in offs:
+        return known, np.linalg.solve(M, r[..., None])[..., 0]
+
+    def _residuals(self, K: np.ndarray, Z: np.ndarray, coef: np.ndarray):
+        """For each window offset: (di, dj, known there, lowest height there, plane there)."""
+        Kp, Zp = np.pad(K, 1), np.pad(Z, 1)
+        h, w = K.shape
+        for di, dj in _OFFSETS:
             k = Kp[1 + di:1 + di + h, 1 + dj:1 + dj + w] > 0
             z = Zp[1 + di:1 + di + h, 1 + dj:1 + dj + w]
             plane = coef[..., 0] + coef[..., 1] * dj * self.cell + coef[..., 2] * di * self.cell
-            ok &= ~k | (np.abs(z - plane) <= self.rover.step_limit_m)
-        return known, ok | ~known
+            yield di, dj, k, z, plane
+
+    def _ground_plane(self, xy: np.ndarray, ij: np.ndarray) -> np.ndarray:
+        """(N,) height of the local ground plane under each of (N, 2) positions in cells ``ij``
+        (the plane :meth:`_terrain_grid` fits around the cell; where too little ground is
+        known for a plane, the lowest ground nearby)."""
+        if self._plane is None:
+            self._terrain = self._terrain_grid()
+        coef, known = self._plane, self._plane_known
+        i, j = ij[:, 0], ij[:, 1]
+        dx = xy[:, 0] - (self._ox + (j + 0.5) * self.cell)
+        dy = xy[:, 1] - (self._oy + (i + 0.5) * self.cell)
+        plane = coef[i, j, 0] + coef[i, j, 1] * dx + coef[i, j, 2] * dy
+        return np.where(known[i, j], plane, self.ground[i, j])
 
     def traversable(self, x: float, y: float, yaw: float) -> bool:
         """Whether the estimated ground at (x, y) is within the slope and step limits (and,
@@ -185,7 +247,7 @@ class OccupancyCollisionModel:
             self._manager = self._build_manager()
         c, s = np.cos(yaw), np.sin(yaw)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        self._body.setTransform(fcl.Transform(R, [x, y, self.ground_z(x, y) + self._body_dz]))
+        self._body.setTransform(fcl.Transform(R, [x, y, self._body_dz]))  # plane-relative
         data = fcl.CollisionData(request=fcl.CollisionRequest())
         self._manager.collide(self._body, data, fcl.defaultCollisionCallback)
         return not data.result.is_collision
