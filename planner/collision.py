@@ -34,7 +34,8 @@ from rovergate.spatial import kdtree
 _OFFSETS = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
 
 BODY_MARGIN_M = 0.1
-"""The rover's body as the planner checks it is this much larger on every side."""
+"""The rover's body as the planner checks it is this much larger on every side (and points
+this much under its clearance or over its top are obstacles)."""
 
 
 class OccupancyCollisionModel:
@@ -77,11 +78,14 @@ class OccupancyCollisionModel:
         self._obstacles: np.ndarray | None = None
         self._edge = obstacle_voxel_m
         self._manager: fcl.DynamicAABBTreeCollisionManager | None = None  # built on first use
-        # The body, widened by BODY_MARGIN_M on every side: the map samples surfaces, and a
-        # corner must not slip between two samples of a rock.
+        # The body, widened by BODY_MARGIN_M on every side, above and below too: the map
+        # samples surfaces, so a corner must not slip between two samples of a rock, and a
+        # rock whose samples read a little under the clearance may still graze the body.
         body_h = rover.body_top_m - rover.clearance_m
         self._body = fcl.CollisionObject(fcl.Box(rover.length_m + 2 * BODY_MARGIN_M,
-                                                 rover.width_m + 2 * BODY_MARGIN_M, body_h))
+                                                 rover.width_m + 2 * BODY_MARGIN_M,
+                                                 body_h + 2 * BODY_MARGIN_M))
+        self._core = fcl.CollisionObject(fcl.Box(rover.length_m, rover.width_m, body_h))
         self._body_dz = rover.clearance_m + body_h / 2
         self.checks = 0
         self.known_ground_only = False
@@ -101,7 +105,8 @@ class OccupancyCollisionModel:
         if self._obstacles is None:
             pts, ij = self._inside
             h = pts[:, 2] - self._ground_plane(pts[:, :2], ij)
-            keep = (h > self.rover.clearance_m) & (h < self.rover.body_top_m)
+            keep = ((h > self.rover.clearance_m - BODY_MARGIN_M)
+                    & (h < self.rover.body_top_m + BODY_MARGIN_M))
             self._obstacles = np.c_[pts[keep, :2], h[keep]]
         return self._obstacles
 
@@ -235,9 +240,10 @@ class OccupancyCollisionModel:
             return bool(np.hypot(x - self.home[0], y - self.home[1]) <= self.home_radius)
         return bool(ok[i, j])
 
-    def is_free(self, x: float, y: float, yaw: float) -> bool:
+    def is_free(self, x: float, y: float, yaw: float, margin: bool = True) -> bool:
         """Whether the body at (x, y, yaw) on the estimated ground touches no obstacle point
-        and stands within the rover's slope and step limits."""
+        and stands within the rover's slope and step limits (``margin``: the body widened by
+        ``BODY_MARGIN_M``; without, the true body)."""
         self.checks += 1
         if not self.traversable(x, y, yaw):
             return False
@@ -247,9 +253,10 @@ class OccupancyCollisionModel:
             self._manager = self._build_manager()
         c, s = np.cos(yaw), np.sin(yaw)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        self._body.setTransform(fcl.Transform(R, [x, y, self._body_dz]))  # plane-relative
+        body = self._body if margin else self._core
+        body.setTransform(fcl.Transform(R, [x, y, self._body_dz]))  # plane-relative
         data = fcl.CollisionData(request=fcl.CollisionRequest())
-        self._manager.collide(self._body, data, fcl.defaultCollisionCallback)
+        self._manager.collide(body, data, fcl.defaultCollisionCallback)
         return not data.result.is_collision
 
 
@@ -284,6 +291,18 @@ class FlyerCollisionModel:
             return True
         d, _ = self._tree.query((x, y, z), distance_upper_bound=self.reach)
         return not math.isfinite(d)
+
+    def distance(self, xyz: np.ndarray) -> float:
+        """Distance from ``xyz`` to the nearest map point (inf without points)."""
+        if self._tree is None:
+            return math.inf
+        return float(self._tree.query(np.asarray(xyz, dtype=np.float64))[0])
+
+    def nearest(self, xyz: np.ndarray) -> np.ndarray | None:
+        """The map point nearest to ``xyz`` (None without points)."""
+        if self._tree is None:
+            return None
+        return self._tree.data[self._tree.query(np.asarray(xyz, dtype=np.float64))[1]]
 
     def free_many(self, xyz: np.ndarray, band: bool = True) -> np.ndarray:
         """(N,) bool: :meth:`is_free` of many sphere centres at once."""

@@ -46,6 +46,8 @@ def _rrt_connect(space, read: Callable, write: Callable, start, goal,
     ss.setStateValidityChecker(valid)
     si = ss.getSpaceInformation()
     si.setStateValidityCheckingResolution(resolution_m / space.getMaximumExtent())
+    if not valid(g):
+        return None  # (RRT-Connect would wait for a valid goal without checking anything)
     ss.setStartAndGoalStates(s, g)
     ss.setup()
     if si.checkMotion(s, g):

@@ -31,7 +31,8 @@ class PlanResult:
     attempts: int
     """Candidates sent to OMPL before one was feasible."""
     reason: str
-    """'best-feasible', 'rotate' (nothing feasible: turn in place) or 'stay'."""
+    """'best-feasible', 'rotate' (nothing feasible: turn in place), 'escape' (only the way out
+    of a spot the map now blocks) or 'stay'."""
     rejected: PlanPath
     """Goal poses of the candidates tried and found infeasible, in the order tried."""
 
@@ -57,6 +58,7 @@ class Planner(abc.ABC):
         points = xyz(occupancy.points)
         model = motion_model(cfg, points, T_map_base,
                              predicted=occupancy.points["source"] == Source.PREDICTED, free=free)
+        model.leave_blocked_start()
         rng = np.random.default_rng([cfg.seed, step])
         return model, rng, gain_field(cfg, points, novel_mask(occupancy, pc.observed_min_views))
 
@@ -91,9 +93,17 @@ def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) ->
     tried = GreedyPlanner._to_path(step, rejected, model)
     turn = model.turn(model.current)
     if model.is_free_turn(turn):
-        return PlanResult(GreedyPlanner._to_path(step, [model.current, turn], model), 0,
-                          len(rejected), "rotate", tried)
+        return PlanResult(motion(step, [model.current, turn], model), 0, len(rejected), "rotate",
+                          tried)
+    if model.prefix:  # leave the spot the map blocks, at least
+        return PlanResult(motion(step, [model.current], model), 0, len(rejected), "escape",
+                          tried)
     return PlanResult(PlanPath(step, [T_map_base]), 0, len(rejected), "stay", tried)
+
+
+def motion(step: int, states: list, model: MotionModel) -> PlanPath:
+    """The path to execute: the escape from a blocked spot, if any, then ``states``."""
+    return GreedyPlanner._to_path(step, model.prefix + states, model)
 
 
 class GreedyPlanner(Planner):
@@ -119,8 +129,8 @@ class GreedyPlanner(Planner):
             goal = candidates[i]
             if model.is_free(goal):
                 path = model.plan(model.current, goal, seed=plan_seed(cfg, step, len(rejected)))
-                if path is not None and model.length(path) <= pc.max_step_m:
-                    return PlanResult(self._to_path(step, path, model), int(gains[i]),
+                if path is not None and model.length(model.prefix + path) <= pc.max_step_m:
+                    return PlanResult(motion(step, path, model), int(gains[i]),
                                       len(rejected) + 1, "best-feasible",
                                       self._to_path(step, rejected, model))
             rejected.append(goal)
@@ -199,8 +209,8 @@ class BeamPlanner(Planner):
         for t in order[: pc.max_attempts]:
             goal = t.states[1]
             path = model.plan(model.current, goal, seed=plan_seed(cfg, step, len(rejected)))
-            if path is not None and model.length(path) <= pc.max_step_m:
-                return PlanResult(GreedyPlanner._to_path(step, path, model),
+            if path is not None and model.length(model.prefix + path) <= pc.max_step_m:
+                return PlanResult(motion(step, path, model),
                                   int(best_of_first[t.first]), len(rejected) + 1,
                                   "best-feasible",
                                   GreedyPlanner._to_path(step, rejected, model))

@@ -9,8 +9,10 @@ same map the gain is rendered from.
 Every motion a model returns is checked on that map, whole: each state after the current one
 is valid, at most ``segment_check_m`` apart (OMPL's motion check at the same resolution). The
 current state itself is not judged (the platform is already there, and the map may have grown
-around it), so a platform whose place the map now calls blocked leaves it by a motion whose
-every later state is free, or turns in place, or stays. The platform never leaves the scored
+around it). A platform whose place the map now calls blocked first escapes it (:meth:`escape`):
+a straight motion of at most ``ESCAPE_M`` along which the true body (no margin) touches no map
+point and moves away from the nearest one, ending in a valid state; planning starts there.
+With no escape it turns in place if the turn is free, or stays. The platform never leaves the scored
 region: its states keep its whole body (its reach) inside the footprint of the box of
 interest, the region of every map it is given (:func:`rovergate.geometry.in_region`).
 """
@@ -32,6 +34,10 @@ State = tuple[float, ...]
 
 #: Turns are checked every this many radians (as the simulator executes them).
 TURN_CHECK_RAD = np.radians(5.0)
+#: The farthest a platform moves to leave a spot the map now blocks (see MotionModel.escape).
+ESCAPE_M = 0.6
+#: Spacing of the escape's checks.
+ESCAPE_STEP_M = 0.05
 
 
 class MotionModel(abc.ABC):
@@ -47,6 +53,22 @@ class MotionModel(abc.ABC):
                                               fallback_ground_z=self._fallback_ground(T_map_base),
                                               predicted=predicted)
         self.current = self.state_of(T_map_base)
+        self.prefix: list[State] = []
+        """The escape from a blocked start: states before :attr:`current` in every motion."""
+
+    def leave_blocked_start(self) -> None:
+        """If the map blocks the current state, escape it (module docstring): the motion's
+        prefix becomes [the blocked state] and planning starts where the escape ends."""
+        if self.is_free(self.current):
+            return
+        end = self.escape()
+        if end is not None:
+            self.prefix = [self.current]
+            self.current = end
+
+    def escape(self) -> State | None:
+        """A valid state a checked straight escape reaches from the blocked current one."""
+        return None
 
     @property
     @abc.abstractmethod
@@ -188,6 +210,20 @@ class RoverModel(MotionModel):
     def turn(self, s: State) -> State:
         return (s[0], s[1], s[2] + np.pi / 2)
 
+    def escape(self) -> State | None:
+        """Forward, then backward, along the heading: every state of the way keeps the true
+        body (no margin) off the map's obstacles on traversable ground, the end is valid."""
+        x, y, yaw = self.current
+        for sign in (1.0, -1.0):
+            ux, uy = sign * np.cos(yaw), sign * np.sin(yaw)
+            for d in np.arange(ESCAPE_STEP_M, ESCAPE_M + 1e-9, ESCAPE_STEP_M):
+                s = (x + d * ux, y + d * uy, yaw)
+                if not self.ground.is_free(*s, margin=False):
+                    break
+                if self.is_free(s):
+                    return s
+        return None
+
 
 class FlyerModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
@@ -260,6 +296,31 @@ class FlyerModel(MotionModel):
 
     def turn(self, s: State) -> State:
         return (*s[:3], s[3] + np.pi / 2, 0.0)
+
+    def escape(self) -> State | None:
+        """Away from the nearest map point, or up or down into the altitude band: every
+        state of the way keeps the true sphere (no margin) off the map, moves no nearer to its
+        nearest point and stays in known free space; the end is valid."""
+        p0 = np.asarray(self.current[:3], dtype=np.float64)
+        directions = []
+        near = self.sphere.nearest(p0)
+        if near is not None and np.linalg.norm(p0 - near) > 1e-6:
+            directions.append((p0 - near) / np.linalg.norm(p0 - near))
+        directions += [np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])]
+        for u in directions:
+            last = self.sphere.distance(p0)
+            for d in np.arange(ESCAPE_STEP_M, ESCAPE_M + 1e-9, ESCAPE_STEP_M):
+                p = p0 + d * u
+                dist = self.sphere.distance(p)
+                if (dist < last - 1e-9 or dist <= self.cfg.flyer.radius_m
+                        or (self.sphere.free is not None
+                            and not self.sphere.free.is_free(*p))):
+                    break
+                last = dist
+                s = (*(float(v) for v in p), *self.current[3:])
+                if self.is_free(s):
+                    return s
+        return None
 
     def is_free_turn(self, s: State) -> bool:
         return True  # turning in place moves no part of the sphere (nor leaves the place)
