@@ -3,12 +3,16 @@ stuck, and how oracle false positives steered the planner's decision. Evaluation
 here reaches a module.
 
 - **Collision class.** A collision with the true scene is a *planner fault* when the map the
-  planner was given held the geometry that was hit: a map point within
+  planner was given held the geometry that was hit as an obstacle: a map point within
   ``PlannerConfig.obstacle_voxel_m`` (the edge of the box the rover's collision model makes of
-  each point; 0.15 m) of the contact point. Otherwise it is *unseen geometry*: the planner
-  could not have known. Every executed motion is checked on the planner's map, so a planner
-  fault means the check and the world disagree (a gap in the map's sampling of a surface, a
-  ground estimate that hid an obstacle) and is a bug to fix, not a finding.
+  each point; 0.15 m) of the contact point that the planner's collision model counts as an
+  obstacle (the flyer: any map point; the rover: a point standing in its body's height band
+  over the local ground, not ground). Otherwise it is *unseen geometry*: the map lacked it, or
+  showed it as ground (a predicted ground voxel where a rock stands). Every executed motion is
+  checked on the planner's map, so a planner fault means the check and the world disagree (a
+  gap in the map's sampling of a surface, the body's kinematics) and is a bug to fix, not a
+  finding. Under ``truth`` every collision is reported whatever its class; the study's bar is
+  none at all there.
 - **Stuck.** The vehicle is stuck at pose t (t >= ``STUCK_WINDOW``) when its net displacement
   over the last ``STUCK_WINDOW`` steps is under ``STUCK_MIN_M``.
 - **The paper's decision-level measure.** Of the gain the planner rendered for the viewpoint
@@ -42,19 +46,27 @@ PLANNER_FAULT = "planner-fault"
 UNSEEN = "unseen-geometry"
 
 
-def collision_class(report: ExecutionReport, planner_map: PlannerMap, tolerance_m: float
-                    ) -> str | None:
+def collision_class(report: ExecutionReport, planner_map: PlannerMap, cfg: MissionConfig,
+                    T_map_base: Pose) -> str | None:
     """:data:`PLANNER_FAULT`, :data:`UNSEEN` or None (no collision); see the module
-    docstring. A collision without a contact point (FCL gave none) counts as a planner fault,
-    the class that must stay at zero."""
+    docstring. ``T_map_base``: the pose the motion started from. A collision without a
+    contact point (FCL gave none) counts as a planner fault, the class that must stay at
+    zero."""
     if not report.collided:
         return None
-    points = xyz(planner_map.points)
     if report.contact is None:
         return PLANNER_FAULT
+    points = xyz(planner_map.points)
+    if cfg.platform == "rover" and len(points):
+        # What the rover's collision model counts as an obstacle (not the ground it reads).
+        model = motion_model(cfg, points, T_map_base,
+                             predicted=planner_map.points["source"] == Source.PREDICTED)
+        model.ground.obstacle_points  # noqa: B018 (computes obstacle_xyz)
+        points = model.ground.obstacle_xyz
     if len(points) == 0:
         return UNSEEN
-    d, _ = kdtree(points).query(np.asarray(report.contact), distance_upper_bound=tolerance_m)
+    d, _ = kdtree(points).query(np.asarray(report.contact),
+                                distance_upper_bound=cfg.planner.obstacle_voxel_m)
     return PLANNER_FAULT if np.isfinite(d) else UNSEEN
 
 
@@ -75,8 +87,9 @@ class Decision:
     fp_gain_share: float | None
     """Share of the chosen view's rendered gain from oracle false positives (0 when the map
     holds no novel false positive; None when the view had no gain to share)."""
-    rejected_by_fp: int
-    """Candidates rejected as infeasible that the map without false positives allows."""
+    rejected_by_fp: int | None
+    """Candidates rejected as infeasible that the map without false positives allows (None:
+    the planner did not publish what it rejected)."""
 
 
 class StepEvaluator:
@@ -97,9 +110,10 @@ class StepEvaluator:
                                    self.tree).false_positive
         return fp
 
-    def decision(self, planner_map: PlannerMap, path: PlanPath, rejected: PlanPath,
+    def decision(self, planner_map: PlannerMap, path: PlanPath, rejected: PlanPath | None,
                  T_map_base: Pose) -> Decision:
-        """The decision measure of one step (``T_map_base``: the pose it planned from)."""
+        """The decision measure of one step (``T_map_base``: the pose it planned from;
+        ``rejected`` None: the planner does not say what it rejected)."""
         cfg = self.cfg
         fp = self.false_positives(planner_map)
         points = xyz(planner_map.points)
@@ -115,8 +129,8 @@ class StepEvaluator:
                 share = gain_field(cfg, points, novel & fp).gain(visible) / total
         elif share is None:
             share = 0.0  # no novel false positive: none of the gain comes from one
-        blocked = 0
-        if fp.any() and rejected.poses:
+        blocked = None if rejected is None else 0
+        if rejected is not None and fp.any() and rejected.poses:
             keep = ~fp
             model = motion_model(cfg, points[keep], T_map_base,
                                  predicted=(planner_map.points["source"]

@@ -76,7 +76,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
             transport.tick(MissionStatus(t, cfg.steps, "running", condition, cov, collisions))
             if t > 0:
                 path = transport.receive("path", t - 1)
-                rejected = transport.receive("rejected", t - 1)
+                rejected = transport.poll("rejected", t - 1)  # published before the path
                 record.paths.append(path)
                 report = transport.receive("execution", t - 1)
                 collisions += int(report.collided)
@@ -96,7 +96,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                         predicted, xyz(kept), judge.reference, cfg.oracle_delta_m,
                         judge.tree)[1])
                 record.collision_class.append(collision_class(
-                    report, planner_map, cfg.planner.obstacle_voxel_m))
+                    report, planner_map, cfg, previous_base))
                 decision = judge.decision(planner_map, path, rejected, previous_base)
                 record.fp_gain_share.append(decision.fp_gain_share)
                 record.rejected_by_fp.append(decision.rejected_by_fp)

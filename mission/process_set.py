@@ -254,6 +254,11 @@ class ProcessSetTransport:
         with self.inbox.cv:
             return self.inbox.pop(topic, step)
 
+    def poll(self, name: str, step: int) -> Any | None:
+        topic = MODULES["mission"].inputs[name].topic
+        with self.inbox.cv:
+            return self.inbox.pop(topic, step) if self.inbox.has(topic, step) else None
+
     def timings(self) -> list[StepTiming]:
         with self.inbox.cv:
             return list(self._timings.values())

@@ -26,7 +26,7 @@ class MissionRecord:
     :mod:`mission.evaluation`."""
     fp_gain_share: list[float | None] = field(default_factory=list)
     """Per step 0..T-1: share of the chosen view's gain from oracle false positives."""
-    rejected_by_fp: list[int] = field(default_factory=list)
+    rejected_by_fp: list[int | None] = field(default_factory=list)
     """Per step 0..T-1: candidates rejected as infeasible because of oracle false positives."""
     executions: list[ExecutionReport] = field(default_factory=list)
     paths: list[PlanPath] = field(default_factory=list)
@@ -87,7 +87,8 @@ class MissionRecord:
             "stuck_steps": int(self.stuck().sum()),
             "fp_gain_share": (float(np.mean(shares)) if shares else None),
             "fp_gain_share_per_step": self.fp_gain_share,
-            "rejected_by_fp": int(sum(self.rejected_by_fp)),
+            "rejected_by_fp": (int(sum(r for r in self.rejected_by_fp if r is not None))
+                               if any(r is not None for r in self.rejected_by_fp) else None),
             "rejected_by_fp_per_step": self.rejected_by_fp,
             "min_clearance_m": float(min((e.min_clearance_m for e in self.executions),
                                          default=float("nan"))),

@@ -44,7 +44,7 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
             motion = ([int(e.collided), record.collision_class[t - 1] or "",
                        int(e.untraversable), repr(e.min_clearance_m), repr(e.path_length_m),
                        repr(e.pose_error_m)] if e else [""] * 6)
-            decision = ([_num(record.fp_gain_share[t - 1]), record.rejected_by_fp[t - 1]]
+            decision = ([_num(record.fp_gain_share[t - 1]), _num(record.rejected_by_fp[t - 1])]
                         if 0 < t <= len(record.fp_gain_share) else ["", ""])
             w.writerow([t, repr(c), *motion, int(stuck[t]) if t < len(stuck) else "",
                         *decision])

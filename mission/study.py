@@ -11,8 +11,10 @@ Layout of ``--out``::
     study.json          the study's settings (a re-run must match them)
     runs/<id>/          one finished run: metrics.json, coverage.csv, config.json
     runs.csv            one row per finished run
-    table1.md           the paper's Table 1 layout, with paired bootstrap 95% CIs
-    table2.md           the paper's Table 2 layout: learned against gated, every start
+    table1.md           the paper's Table 1 layout over every repetition, bootstrap 95% CIs over
+                        starts, a placebo row (learned against itself), failure modes
+    table2.md           the paper's Table 2 layout: learned against gated, every start, with
+                        sign-flip p-values, Holm correction, a sign test, the paper's selection
     summary.json        the tables' figures, the study's wall time and per-stage medians
     coverage_<condition>.png  every run's coverage curve, with the mean
     coverage_curves.csv every run's per-step coverage, one row per run
@@ -60,8 +62,9 @@ class StudyConfig:
     conditions: tuple[str, ...] = PAPER_ORDER
     """Planner-facing conditions (`learned` is the baseline of every delta and of S70, so it
     is always run)."""
-    reps: int = 1
-    """Repetitions of every condition (repetition r runs with seed r)."""
+    reps: int = 3
+    """Repetitions of every condition (repetition r runs with seed r): three at least, so
+    that the placebo row (learned against itself) shows the noise floor."""
     filter_reps: int = 3
     """Repetitions of `learned` and `gated` on every start, for Table 2 (at least --reps)."""
     steps: int = 100

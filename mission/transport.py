@@ -48,6 +48,12 @@ class Transport(Protocol):
         waiting for it if it has not come yet."""
         ...
 
+    def poll(self, name: str, step: int) -> Any | None:
+        """The mission's input ``name`` of ``step`` if it has come, else None, without
+        waiting: for diagnostics a module may not publish (a planner of the user's own need
+        not publish ``rejected``), read after an output its module publishes later."""
+        ...
+
     def timings(self) -> list[StepTiming]:
         """Every stage timing the modules reported, one per (stage, step)."""
         ...
@@ -116,6 +122,9 @@ class InProcessTransport:
         step, value = stamped(topic, value)
         for module, name, _ in consumers(topic):
             self._buffers[module][name][step] = value
+
+    def poll(self, name: str, step: int) -> Any | None:
+        return self._buffers["mission"][name].pop(step, None)
 
     def receive(self, name: str, step: int) -> Any:
         try:

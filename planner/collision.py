@@ -43,12 +43,15 @@ class OccupancyCollisionModel:
 
     def __init__(self, points_map: np.ndarray, rover: RoverConfig, bounds_m: tuple[float, ...],
                  ground_cell_m: float, obstacle_voxel_m: float, fallback_ground_z: float,
-                 predicted: np.ndarray | None = None) -> None:
+                 predicted: np.ndarray | None = None, contacts: np.ndarray | None = None
+                 ) -> None:
         """``predicted``: (N,) bool, the points that are predictions, not measurements. A cell's
         ground comes from its measured points when it has any: a prediction's height is
         uncertain by its voxel, and one low predicted point would sink the ground estimate
-        under everything measured around it."""
+        under everything measured around it. ``contacts``: points where the rover touched the
+        scene: obstacles whatever their height (a bumper's reading, not ground)."""
         self.rover = rover
+        self._contacts = np.zeros((0, 3)) if contacts is None else np.asarray(contacts)
         self.cell = ground_cell_m
         self.fallback_ground_z = fallback_ground_z
         xmin, ymin, _, xmax, ymax, _ = bounds_m
@@ -108,6 +111,12 @@ class OccupancyCollisionModel:
             keep = ((h > self.rover.clearance_m - BODY_MARGIN_M)
                     & (h < self.rover.body_top_m + BODY_MARGIN_M))
             self._obstacles = np.c_[pts[keep, :2], h[keep]]
+            self.obstacle_xyz = pts[keep]
+            """The same obstacle points as the map has them (x, y, z)."""
+            if len(self._contacts):  # in the middle of the body's band
+                mid = (self.rover.clearance_m + self.rover.body_top_m) / 2
+                self._obstacles = np.vstack([self._obstacles, np.c_[
+                    self._contacts[:, :2], np.full(len(self._contacts), mid)]])
         return self._obstacles
 
     def _build_manager(self) -> fcl.DynamicAABBTreeCollisionManager:

@@ -45,19 +45,21 @@ class Planner(abc.ABC):
 
     @abc.abstractmethod
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-             free: FreeSpace | None = None) -> PlanResult:
+             free: FreeSpace | None = None, contacts: np.ndarray | None = None) -> PlanResult:
         """The motion for step ``step`` (``free``: the known free space, which the flyer
-        keeps to)."""
+        keeps to; ``contacts``: (K, 3) points where the platform touched the scene, obstacles
+        to its collision checks though not part of the map's gain)."""
 
     def _setup(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-               free: FreeSpace | None = None
+               free: FreeSpace | None = None, contacts: np.ndarray | None = None
                ) -> tuple[MotionModel, np.random.Generator, GainField]:
         """One step's motion model, random generator (seeded by seed and step) and gain field,
         all read from the same planner-facing map."""
         cfg, pc = self.cfg, self.cfg.planner
         points = xyz(occupancy.points)
         model = motion_model(cfg, points, T_map_base,
-                             predicted=occupancy.points["source"] == Source.PREDICTED, free=free)
+                             predicted=occupancy.points["source"] == Source.PREDICTED, free=free,
+                             contacts=contacts)
         model.leave_blocked_start()
         rng = np.random.default_rng([cfg.seed, step])
         return model, rng, gain_field(cfg, points, novel_mask(occupancy, pc.observed_min_views))
@@ -115,9 +117,9 @@ class GreedyPlanner(Planner):
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-             free: FreeSpace | None = None) -> PlanResult:
+             free: FreeSpace | None = None, contacts: np.ndarray | None = None) -> PlanResult:
         cfg, pc = self.cfg, self.cfg.planner
-        model, rng, field = self._setup(step, occupancy, T_map_base, free)
+        model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts)
         candidates = model.sample(rng, pc.n_candidates)
         gains = np.array([field.gain(field.visible(model.camera(c))) for c in candidates],
                          dtype=np.int64)
@@ -169,9 +171,9 @@ class BeamPlanner(Planner):
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-             free: FreeSpace | None = None) -> PlanResult:
+             free: FreeSpace | None = None, contacts: np.ndarray | None = None) -> PlanResult:
         cfg, pc = self.cfg, self.cfg.planner
-        model, rng, field = self._setup(step, occupancy, T_map_base, free)
+        model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts)
         dims = 3 if cfg.platform == "flyer" else 2
 
         def extend(node: _Trajectory, n: int) -> list[_Trajectory]:

@@ -44,14 +44,16 @@ class MotionModel(abc.ABC):
     """One step's view of the platform (see the module docstring)."""
 
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None) -> None:
+                 predicted: np.ndarray | None = None, contacts: np.ndarray | None = None
+                 ) -> None:
         self.cfg = cfg
         self.points = points
+        self.contacts = np.zeros((0, 3)) if contacts is None else np.asarray(contacts)
         b = cfg.scene.bounds_m
         self.ground = OccupancyCollisionModel(points, cfg.rover, b, cfg.planner.ground_cell_m,
                                               cfg.planner.obstacle_voxel_m,
                                               fallback_ground_z=self._fallback_ground(T_map_base),
-                                              predicted=predicted)
+                                              predicted=predicted, contacts=self.contacts)
         self.current = self.state_of(T_map_base)
         self.prefix: list[State] = []
         """The escape from a blocked start: states before :attr:`current` in every motion."""
@@ -162,11 +164,14 @@ def outside_body(points: np.ndarray, T_map_base: Pose, rover: RoverConfig,
 
 class RoverModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None, free: FreeSpace | None = None) -> None:
+                 predicted: np.ndarray | None = None, free: FreeSpace | None = None,
+                 contacts: np.ndarray | None = None) -> None:
         # The rover's counterpart of known free space is known ground (drive_known_ground_only).
         keep = outside_body(points, T_map_base, cfg.rover)
+        if contacts is not None and len(contacts):
+            contacts = contacts[outside_body(contacts, T_map_base, cfg.rover)]
         super().__init__(cfg, points[keep], T_map_base,
-                         None if predicted is None else predicted[keep])
+                         None if predicted is None else predicted[keep], contacts)
         if cfg.planner.known_ground_only:
             self.ground.drive_known_ground_only(*self.current[:2])
 
@@ -227,9 +232,12 @@ class RoverModel(MotionModel):
 
 class FlyerModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None, free: FreeSpace | None = None) -> None:
+                 predicted: np.ndarray | None = None, free: FreeSpace | None = None,
+                 contacts: np.ndarray | None = None) -> None:
         super().__init__(cfg, points, T_map_base, predicted)
-        self.sphere = FlyerCollisionModel(points, cfg.flyer, self.ground, free=free)
+        solid = points if contacts is None or not len(contacts) else np.vstack(
+            [points, contacts]).astype(np.float32)
+        self.sphere = FlyerCollisionModel(solid, cfg.flyer, self.ground, free=free)
 
     def _fallback_ground(self, T: Pose) -> float:
         return float(T.position[2]) - self.cfg.flyer.altitude_m
@@ -327,10 +335,10 @@ class FlyerModel(MotionModel):
 
 
 def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None, free: FreeSpace | None = None
-                 ) -> MotionModel:
+                 predicted: np.ndarray | None = None, free: FreeSpace | None = None,
+                 contacts: np.ndarray | None = None) -> MotionModel:
     """The motion model of ``cfg.platform`` for one step; ``predicted`` marks the points that
     are predictions (the map's ``source``); ``free`` is the known free space (the flyer keeps
-    to it)."""
+    to it); ``contacts`` are where the platform touched the scene (obstacles from then on)."""
     return (FlyerModel if cfg.platform == "flyer" else RoverModel)(cfg, points, T_map_base,
-                                                                   predicted, free)
+                                                                   predicted, free, contacts)

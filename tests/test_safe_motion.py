@@ -48,10 +48,19 @@ def test_a_collision_with_geometry_the_map_held_is_a_planner_fault():
     hit = ExecutionReport(3, True, 1, -1.0, 0.4, 0.2, contact=(2.0, 0.0, 0.5))
     rock = np.array([[2.05, 0.0, 0.5], [2.05, 0.1, 0.6]], dtype=np.float32)
     elsewhere = np.array([[5.0, 5.0, 0.5]], dtype=np.float32)
-    assert collision_class(hit, planner_map(rock), 0.15) == PLANNER_FAULT
-    assert collision_class(hit, planner_map(elsewhere), 0.15) == UNSEEN
-    clear = ExecutionReport(3, False, 0, 0.4, 2.0, 1.0)
-    assert collision_class(clear, planner_map(rock), 0.15) is None
+    here = Pose.from_xyz_yaw(0.0, 0.0, 0.0, 0.0)
+    for platform in ("flyer", "rover"):
+        cfg = mission(platform)
+        floor = ground()
+        held = planner_map(np.vstack([floor, rock]))
+        assert collision_class(hit, held, cfg, here) == PLANNER_FAULT, platform
+        assert collision_class(hit, planner_map(np.vstack([floor, elsewhere])), cfg,
+                               here) == UNSEEN, platform
+        clear = ExecutionReport(3, False, 0, 0.4, 2.0, 1.0)
+        assert collision_class(clear, held, cfg, here) is None
+    # The rover hit a rock where the map showed only ground: the map did not hold it.
+    low = ExecutionReport(3, True, 1, -1.0, 0.4, 0.2, contact=(2.0, 0.0, 0.1))
+    assert collision_class(low, planner_map(ground()), mission("rover"), here) == UNSEEN
 
 
 def test_stuck_is_no_net_progress_over_the_window():
