@@ -49,24 +49,28 @@ class OccupancyCollisionModel:
         self.shape = (int(np.ceil((ymax - ymin + 2 * margin) / ground_cell_m)) + 1,
                       int(np.ceil((xmax - xmin + 2 * margin) / ground_cell_m)) + 1)
         grid = np.full(self.shape, np.inf)
-        ij = self._cells(points_map[:, :2]) if len(points_map) else np.zeros((0, 2), int)
-        inside = ((ij[:, 0] >= 0) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] >= 0)
-                  & (ij[:, 1] < self.shape[1]))
+        p = np.asarray(points_map)
+        # Cells as _cells gives them, a column at a time, and as flat indices: ufunc.at on a
+        # flat index into a 1-D view takes its fast path (eight times faster than on a tuple
+        # of index arrays); the minimum of each cell is the same whatever the order.
+        row = np.floor((p[:, 1].astype(np.float64) - self._oy) / self.cell).astype(np.int64)
+        col = np.floor((p[:, 0].astype(np.float64) - self._ox) / self.cell).astype(np.int64)
+        inside = (row >= 0) & (row < self.shape[0]) & (col >= 0) & (col < self.shape[1])
+        flat = row * self.shape[1] + col
+        z = p[:, 2].astype(np.float64)
         measured = inside if predicted is None else inside & ~predicted
-        np.minimum.at(grid, (ij[measured, 0], ij[measured, 1]), points_map[measured, 2])
+        np.minimum.at(grid.reshape(-1), flat[measured], z[measured])
         if predicted is not None:
             guess = np.full(self.shape, np.inf)
             only = inside & predicted
-            np.minimum.at(guess, (ij[only, 0], ij[only, 1]), points_map[only, 2])
+            np.minimum.at(guess.reshape(-1), flat[only], z[only])
             grid = np.where(np.isfinite(grid), grid, guess)
         half_diag = np.hypot(rover.length_m, rover.width_m) / 2
         size = 2 * int(np.ceil(half_diag / ground_cell_m)) + 1
         self.raw_ground = grid
         self.ground = minimum_filter(grid, size=size, mode="nearest")
-
-        h = points_map[inside, 2] - self.ground[ij[inside, 0], ij[inside, 1]]
-        obstacle = (h > rover.clearance_m) & (h < rover.body_top_m)
-        self.obstacle_points = points_map[inside][obstacle]
+        self._obstacle_source = (p, inside, flat)
+        self._obstacle_points: np.ndarray | None = None
         self._edge = obstacle_voxel_m
         self._manager: fcl.DynamicAABBTreeCollisionManager | None = None  # built on first use
         body_h = rover.body_top_m - rover.clearance_m
@@ -77,6 +81,18 @@ class OccupancyCollisionModel:
         self.known_ground_only = False
         self.home: tuple[float, float] | None = None
         self.home_radius = float(np.hypot(rover.length_m, rover.width_m))
+
+    @property
+    def obstacle_points(self) -> np.ndarray:
+        """(M, 3) map points that stand between the body's clearance and its top above the
+        estimated ground: the rover's obstacles. Computed on first use (the flyer's sphere
+        never needs them)."""
+        if self._obstacle_points is None:
+            p, inside, flat = self._obstacle_source
+            h = p[inside, 2] - self.ground.reshape(-1)[flat[inside]]
+            obstacle = (h > self.rover.clearance_m) & (h < self.rover.body_top_m)
+            self._obstacle_points = p[inside][obstacle]
+        return self._obstacle_points
 
     def _build_manager(self) -> fcl.DynamicAABBTreeCollisionManager:
         """The FCL broad phase over the obstacle points (built only when the body is checked:
