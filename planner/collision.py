@@ -24,6 +24,7 @@ import math
 import fcl
 import numpy as np
 from scipy.ndimage import minimum_filter
+from scipy.spatial import cKDTree
 
 from rovergate.config import FlyerConfig, RoverConfig
 from rovergate.spatial import kdtree
@@ -205,16 +206,50 @@ class OccupancyCollisionModel:
         return not data.result.is_collision
 
 
+#: Half the side of the square, around the flyer's first sphere check of a step, whose points
+#: its first k-d tree holds (metres). The beam search's checks lie within three motions of
+#: ``max_step_m`` (3 m) of the current position, and its first check within one.
+NEAR_HALF_M = 14.0
+
+
 class FlyerCollisionModel:
-    """The flyer's check on one step's planner-facing occupancy: a sphere among points."""
+    """The flyer's check on one step's planner-facing occupancy: a sphere among points.
+
+    The points are indexed when first checked, and in two k-d trees: the first check fixes a
+    square of ``NEAR_HALF_M`` around it, whose points one tree holds; a check whose sphere
+    lies inside that square is answered by it (every point that could touch the sphere is in
+    the square), any other by a tree of all the points, built the first time one is needed (an
+    RRT search that wanders). Both give the distance to the same nearest point, so every
+    answer is that of one tree of all the points; a step's search mostly stays near where it
+    starts, and the near tree holds half the map or less.
+    """
 
     def __init__(self, points_map: np.ndarray, flyer: FlyerConfig, ground: OccupancyCollisionModel,
                  margin_m: float = 0.1) -> None:
         self.cfg = flyer
         self.ground = ground
         self.reach = flyer.radius_m + margin_m
-        self._tree = kdtree(points_map) if len(points_map) else None
+        self._points = np.asarray(points_map)
+        self._near: tuple[cKDTree | None, float, float] | None = None  # tree, centre x, y
+        self._all: cKDTree | None = None
         self.checks = 0
+
+    def _tree(self, xy: np.ndarray) -> cKDTree | None:
+        """The tree that answers checks of sphere centres at (N, 2) ``xy`` (None: no points
+        near them)."""
+        if self._near is None:
+            cx, cy = float(xy[0, 0]), float(xy[0, 1])
+            p = self._points
+            near = ((np.abs(p[:, 0].astype(np.float64) - cx) <= NEAR_HALF_M)
+                    & (np.abs(p[:, 1].astype(np.float64) - cy) <= NEAR_HALF_M))
+            self._near = (kdtree(p[near]) if near.any() else None, cx, cy)
+        tree, cx, cy = self._near
+        inner = NEAR_HALF_M - self.reach - 1e-6
+        if (np.abs(xy[:, 0] - cx) <= inner).all() and (np.abs(xy[:, 1] - cy) <= inner).all():
+            return tree
+        if self._all is None:
+            self._all = kdtree(self._points)
+        return self._all
 
     def altitude_band(self, x: float, y: float) -> tuple[float, float]:
         g = self.ground.ground_z(x, y)
@@ -228,9 +263,12 @@ class FlyerCollisionModel:
             lo, hi = self.altitude_band(x, y)
             if not lo <= z <= hi:
                 return False
-        if self._tree is None:
+        if len(self._points) == 0:
             return True
-        d, _ = self._tree.query((x, y, z), distance_upper_bound=self.reach)
+        tree = self._tree(np.array([[x, y]], dtype=np.float64))
+        if tree is None:
+            return True
+        d, _ = tree.query((x, y, z), distance_upper_bound=self.reach)
         return not math.isfinite(d)
 
     def free_many(self, xyz: np.ndarray, band: bool = True) -> np.ndarray:
@@ -242,7 +280,10 @@ class FlyerCollisionModel:
             g = self.ground.ground_z_many(xyz[:, :2])
             z = xyz[:, 2] - g
             ok = (z >= self.cfg.min_altitude_m) & (z <= self.cfg.max_altitude_m)
-        if self._tree is not None and ok.any():
-            d, _ = self._tree.query(xyz[ok], distance_upper_bound=self.reach)
-            ok[ok] = ~np.isfinite(d)
+        if len(self._points) and ok.any():
+            q = xyz[ok]
+            tree = self._tree(q[:, :2])
+            if tree is not None:
+                d, _ = tree.query(q, distance_upper_bound=self.reach)
+                ok[ok] = ~np.isfinite(d)
         return ok
