@@ -44,38 +44,45 @@ def _erode(zbuf: np.ndarray) -> np.ndarray:
     return out
 
 
-def _project(points_map: np.ndarray, T_map_camera: np.ndarray, k: CameraIntrinsics,
-             min_range_m: float, max_range_m: float, tolerance_m: float) -> np.ndarray:
-    """(N,) bool: which of (N, 3) float64 ``points_map`` the camera sees (see
-    :func:`visible_mask`)."""
-    R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
-    pc = (points_map - t) @ R
-    z = pc[:, 2]
+def _project(points_cam: np.ndarray, k: CameraIntrinsics, min_range_m: float,
+             max_range_m: float, tolerance_m: float, views: np.ndarray | None = None,
+             n_views: int = 1) -> np.ndarray:
+    """(N,) bool: which of (N, 3) camera-frame points their camera sees (see
+    :func:`visible_mask`). ``views``: (N,) index of each point's view among ``n_views``, each
+    with its own z-buffer (None: one view)."""
+    z = points_cam[:, 2]
     ok = (z >= min_range_m) & (z <= max_range_m)
     zs = np.where(ok, z, 1.0)
-    u = np.floor(k.fx * pc[:, 0] / zs + k.cx + 0.5).astype(np.int64)
-    v = np.floor(k.fy * pc[:, 1] / zs + k.cy + 0.5).astype(np.int64)
+    u = np.floor(k.fx * points_cam[:, 0] / zs + k.cx + 0.5).astype(np.int64)
+    v = np.floor(k.fy * points_cam[:, 1] / zs + k.cy + 0.5).astype(np.int64)
     ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
     idx = np.flatnonzero(ok)
-    visible = np.zeros(len(points_map), dtype=bool)
+    visible = np.zeros(len(points_cam), dtype=bool)
     if len(idx) == 0:
         return visible
     pix = v[idx] * k.width + u[idx]
+    if views is not None:
+        pix += views[idx] * (k.width * k.height)
     zi = z[idx]
-    zbuf = np.full(k.width * k.height, np.inf)
+    zbuf = np.full(n_views * k.width * k.height, np.inf)
     np.minimum.at(zbuf, pix, zi)
     # Points are samples, not surfaces: close the one-pixel gaps between the samples of a
     # near surface so that it hides what is behind it.
-    zbuf = _erode(zbuf.reshape(k.height, k.width)).ravel()
+    zbuf = _erode(zbuf.reshape(n_views, k.height, k.width)).ravel()
     visible[idx] = zi <= zbuf[pix] + tolerance_m
     return visible
+
+
+def _to_camera(points_map: np.ndarray, T_map_camera: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 points in the camera frame of ``T_map_camera`` (optical: z forward)."""
+    return (points_map - T_map_camera[:3, 3]) @ T_map_camera[:3, :3]
 
 
 def visible_mask(points_map: np.ndarray, T_map_camera: np.ndarray, k: CameraIntrinsics,
                  min_range_m: float, max_range_m: float, tolerance_m: float) -> np.ndarray:
     """(N,) bool: the points a camera at ``T_map_camera`` sees, with occlusion."""
-    return _project(np.asarray(points_map, dtype=np.float64), T_map_camera, k, min_range_m,
-                    max_range_m, tolerance_m)
+    return _project(_to_camera(np.asarray(points_map, dtype=np.float64), T_map_camera), k,
+                    min_range_m, max_range_m, tolerance_m)
 
 
 def _group(keys: np.ndarray, n_keys: int) -> tuple[np.ndarray, np.ndarray]:
@@ -158,11 +165,24 @@ class GainField:
 
     def visible(self, T_map_camera: np.ndarray) -> np.ndarray:
         """Indices of the primitives a camera at ``T_map_camera`` sees."""
-        idx = self._candidates(T_map_camera)
-        points = self.centres if idx is None else np.take(self.centres, idx, axis=0)
-        seen = _project(points, T_map_camera, self.k, self.min_range_m, self.max_range_m,
-                        self.tolerance_m)
-        return np.flatnonzero(seen) if idx is None else idx[seen]
+        return self.visible_many([T_map_camera])[0]
+
+    def visible_many(self, cameras: list[np.ndarray]) -> list[np.ndarray]:
+        """:meth:`visible` of each of several views: the same arithmetic, in fewer and larger
+        numpy calls (each view still has its own z-buffer)."""
+        picks = [self._candidates(T) for T in cameras]
+        picks = [np.arange(len(self)) if p is None else p for p in picks]
+        if not picks:
+            return []
+        # Each view's points through its own matrix product, as visible_mask does for it.
+        cam = np.concatenate([_to_camera(np.take(self.centres, p, axis=0), T)
+                              for p, T in zip(picks, cameras, strict=True)])
+        counts = [len(p) for p in picks]
+        views = np.repeat(np.arange(len(cameras)), counts)
+        seen = _project(cam, self.k, self.min_range_m, self.max_range_m, self.tolerance_m,
+                        views, len(cameras))
+        ends = np.cumsum(counts)
+        return [p[seen[e - n:e]] for p, e, n in zip(picks, ends, counts, strict=True)]
 
     def gain(self, visible: np.ndarray, seen: np.ndarray | None = None) -> int:
         """Novel weight of the ``visible`` primitives not already in ``seen`` (bool mask)."""

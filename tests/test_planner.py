@@ -196,6 +196,7 @@ def test_gain_field_views_are_visible_mask_to_the_bit():
     assert field.weight.sum() == novel.sum()
     rotations = Rotation.random(60, random_state=3).as_matrix()
     seen_any = 0
+    cameras, expect = [], []
     for i, R in enumerate(rotations):
         T = np.eye(4)
         T[:3, :3] = R if i % 2 else R_BODY_OPTICAL @ Rotation.from_euler(
@@ -204,7 +205,11 @@ def test_gain_field_views_are_visible_mask_to_the_bit():
         expected = np.flatnonzero(visible_mask(field.centres, T, K, 0.3, 20.0, 0.3))
         assert np.array_equal(field.visible(T), expected)
         seen_any += len(expected) > 50
+        cameras.append(T)
+        expect.append(expected)
     assert seen_any > 10  # the views did see things
+    together = field.visible_many(cameras)  # every view with its own z-buffer
+    assert all(np.array_equal(a, b) for a, b in zip(together, expect, strict=True))
     # The z-buffer's erosion is scipy's 3 x 3 minimum filter with edges repeated.
     from scipy.ndimage import minimum_filter
     for shape in [(30, 40), (1, 1), (1, 5), (5, 1), (7, 3)]:
