@@ -307,3 +307,20 @@ def test_prediction_reads_thresholds_exactly_and_skips_an_unchanged_window():
     grid.state[3, 3, 3] = OCCUPIED
     predictor.update(camera)
     assert len(calls) == 2
+
+
+def test_probabilities_round_to_float16_as_numpy_rounds_them():
+    """to_float16 at every float16 number in [0, 1], at every rounding boundary between two
+    of them (a tie: to even) and a few float32 steps either side, and at random."""
+    from mapper.model import to_float16
+    half = np.arange(0, 0x3C01, dtype=np.uint16).view(np.float16).astype(np.float32)
+    mid = ((half[:-1].astype(np.float64) + half[1:]) / 2).astype(np.float32)  # exact
+    values = [half, mid]
+    for direction in (np.float32(2.0), np.float32(-1.0)):
+        x = mid
+        for _ in range(3):
+            x = np.nextafter(x, direction, dtype=np.float32)
+            values.append(x)
+    values.append(np.random.default_rng(4).random(1_000_000, dtype=np.float32))
+    v = np.concatenate(values)
+    assert np.array_equal(to_float16(v).view(np.uint16), v.astype(np.float16).view(np.uint16))
