@@ -17,6 +17,7 @@ window on two CPU cores, and one window per step covers what the camera can see.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from dataclasses import asdict, dataclass
@@ -203,6 +204,10 @@ def weights_sha256(model: nn.Module) -> str:
 
 # ----------------------------------------------------------------------------- inference
 
+#: The arithmetic the model may run in (OccupancyPredictor's ``precision``).
+PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
 def to_float16(values: np.ndarray) -> np.ndarray:
     """``values.astype(np.float16)`` of a float32 array, to the bit: both round to nearest,
     ties to even, but numpy converts the results that are float16 subnormals (the many
@@ -219,10 +224,22 @@ class OccupancyPredictor:
     keep their last prediction (0 where never predicted).
     """
 
-    def __init__(self, checkpoint: Checkpoint, grid: OccupancyGrid) -> None:
+    def __init__(self, checkpoint: Checkpoint, grid: OccupancyGrid,
+                 precision: str = "float32") -> None:
+        """``precision``: the arithmetic of the model's pass. ``float32`` is the trained
+        model's, and gives every published number. ``bfloat16`` runs it about 1.7 times faster
+        on a CPU with native bfloat16 (AVX512-BF16 or AMX), and moves the numbers a little:
+        on flyer missions' windows, probabilities by at most 0.015 and the 0.5 decision of
+        about one covered voxel in 8000; most predicted points' sub-voxel heights move
+        slightly, under 0.5% by more than 0.2 m. Without native support it is slower than
+        float32."""
         if abs(checkpoint.window.voxel_m - grid.spec.voxel_m) > 1e-9:
             raise ValueError("the grid's voxel size differs from the model's")
-        self.model = checkpoint.model
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision {precision!r} is not one of {', '.join(PRECISIONS)}")
+        self.dtype = PRECISIONS[precision]
+        self.model = (checkpoint.model if self.dtype == torch.float32
+                      else copy.deepcopy(checkpoint.model).to(self.dtype))
         self.window = checkpoint.window
         self.grid = grid
         self.probability = np.zeros(grid.spec.shape, dtype=np.float16)
@@ -247,7 +264,8 @@ class OccupancyPredictor:
         self._last = (start, state)
         x = self._input(w)
         x[:3] = encode_state(state)
-        logits = self.model(torch.from_numpy(x)[None])[0, 0].numpy()
+        logits = self.model(torch.from_numpy(x)[None].to(self.dtype))[0, 0].to(
+            torch.float32).numpy()
         prob = to_float16(1.0 / (1.0 + np.exp(-logits)))
         where = overlap(start, w.size, self.grid.spec.shape)
         if where is not None:

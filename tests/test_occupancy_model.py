@@ -324,3 +324,21 @@ def test_probabilities_round_to_float16_as_numpy_rounds_them():
     values.append(np.random.default_rng(4).random(1_000_000, dtype=np.float32))
     v = np.concatenate(values)
     assert np.array_equal(to_float16(v).view(np.uint16), v.astype(np.float16).view(np.uint16))
+
+
+def test_the_model_in_bfloat16_predicts_nearly_what_it_does_in_float32():
+    ckpt = load_checkpoint()
+    w = ckpt.window
+    spec = GridSpec((0.0, 0.0, 0.0), w.voxel_m, w.size)
+    grid = OccupancyGrid(spec)
+    grid.state[: w.size[0] // 2, :, w.below - 4] = OCCUPIED
+    grid.state[: w.size[0] // 2, :, w.below - 3:] = FREE
+    camera = spec.centres(np.array([[w.size[0] // 2 - 1, w.size[1] // 2, w.below]]))[0]
+    full, half = OccupancyPredictor(ckpt, grid), OccupancyPredictor(ckpt, grid, "bfloat16")
+    full.update(camera)
+    half.update(camera)
+    a, b = full.probability.astype(np.float32), half.probability.astype(np.float32)
+    assert np.abs(a - b).max() < 0.05 and np.mean((a >= 0.5) != (b >= 0.5)) < 1e-3
+    assert ckpt.model.stem[0].weight.dtype == torch.float32  # the checkpoint's is untouched
+    with pytest.raises(ValueError, match="float32, bfloat16"):
+        OccupancyPredictor(ckpt, grid, "float16")
