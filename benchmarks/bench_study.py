@@ -9,7 +9,9 @@ With ``--baseline-tree PATH`` (a checkout of the older code, e.g. ``git worktree
 /tmp/wt-base main``), the same missions also run with ``PYTHONPATH=PATH``: rounds alternate
 between the trees (a pair of this tree's runs, then a pair of the other's), so that the load
 of the machine falls on both alike, and the figures come with the ratio before / after and
-whether each mission's coverage curve is identical in both trees. ``--save FILE`` writes the
+whether each mission's coverage curve is identical in both trees. ``--tree PATH`` measures
+another checkout than this one as "after" (one change at a time: a commit against its
+parent). ``--save FILE`` writes the
 figures as JSON; ``--baseline-json FILE`` compares with figures saved earlier instead (the
 ratio then spans two runs of the benchmark: weaker than one run against a tree).
 
@@ -106,10 +108,10 @@ def print_table(after: dict, before: dict | None, label: str) -> None:
 
 
 def main(steps: int, seeds: list[int], conditions: list[str], scenes: list[str], start: str,
-         rounds: int, baseline_tree: Path | None, baseline_json: Path | None,
+         rounds: int, tree: Path, baseline_tree: Path | None, baseline_json: Path | None,
          save: Path | None) -> None:
     jobs = [(scene, start, c, s) for scene in scenes for c in conditions for s in seeds]
-    trees = {"after": REPO}
+    trees = {"after": tree.resolve()}
     if baseline_tree is not None:
         trees["before"] = baseline_tree.resolve()
     print(f"{len(jobs)} missions of {steps} steps ({', '.join(scenes)} / {start}; "
@@ -161,11 +163,13 @@ def entrypoint() -> None:
     ap.add_argument("--scenes", nargs="+", default=["arch_field", "crater"])
     ap.add_argument("--start", default="a")
     ap.add_argument("--rounds", type=int, default=1, help="times every mission runs per tree")
+    ap.add_argument("--tree", type=Path, default=REPO,
+                    help="checkout of the code to measure (default: this one)")
     ap.add_argument("--baseline-tree", type=Path, help="checkout of the code to compare with")
     ap.add_argument("--baseline-json", type=Path, help="figures saved by --save, to compare")
     ap.add_argument("--save", type=Path, help="write this run's figures here (JSON)")
     a = ap.parse_args()
-    main(a.steps, a.seeds, a.conditions, a.scenes, a.start, a.rounds, a.baseline_tree,
+    main(a.steps, a.seeds, a.conditions, a.scenes, a.start, a.rounds, a.tree, a.baseline_tree,
          a.baseline_json, a.save)
 
 
