@@ -49,8 +49,13 @@ class GridSpec:
         """(N, 3) int64 voxel indices of map points, and the (N,) mask of those in the grid."""
         ijk = np.floor((np.asarray(points_m, np.float64) - self.origin_m)
                        / self.voxel_m).astype(np.int64)
-        inside = np.all((ijk >= 0) & (ijk < self.shape), axis=1)
-        return ijk, inside
+        return ijk, self.inside(ijk[:, 0], ijk[:, 1], ijk[:, 2])
+
+    def inside(self, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether voxel indices (i, j, k), one array per axis, are in the grid (a
+        comparison per axis: numpy reduces an (N, 3) array along its short axis slowly)."""
+        nx, ny, nz = self.shape
+        return (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz)
 
     def centres(self, ijk: np.ndarray) -> np.ndarray:
         """(N, 3) float32 map coordinates of the centres of voxels (N, 3) ijk."""
@@ -90,17 +95,28 @@ class OccupancyGrid:
             unit = d / np.maximum(length, 1e-9)[:, None]
             step = 0.5 * spec.voxel_m
             t = np.arange(int(np.ceil(length.max() / step)) + 1) * step
-            use = t[None, :] < (length - spec.voxel_m)[:, None]
-            rows, cols = np.nonzero(use)
-            samples = origin + unit[rows] * t[cols, None]
-            ijk, inside = spec.index(samples)
-            idx = spec.flat(ijk[inside])
-            flat_state[idx] |= FREE
+            # A ray's samples are the t short of its return by more than a voxel, a prefix of
+            # t: the (ray, t) pairs of np.nonzero(t[None, :] < (length - voxel_m)[:, None]), in
+            # its order, without building that (rays, len(t)) mask.
+            n = np.searchsorted(t, length - spec.voxel_m, side="left")
+            rows = np.repeat(np.arange(len(n)), n)
+            t_rows = t[np.arange(len(rows)) - np.repeat(np.cumsum(n) - n, n)]
+            # The samples origin + unit * t and their voxels, one axis at a time (the same
+            # arithmetic as spec.index, without (samples, 3) arrays).
+            vi, vj, vk = (np.floor((origin[a] + unit[:, a][rows] * t_rows - spec.origin_m[a])
+                                   / spec.voxel_m).astype(np.int64) for a in range(3))
+            inside = spec.inside(vi, vj, vk)
+            flat_state[self._flat(vi[inside], vj[inside], vk[inside])] |= FREE
         if returns_map is None:
             returns_map = backproject(depth_m, k, T_map_camera)
         ijk, inside = spec.index(returns_map)
-        idx = spec.flat(ijk[inside])
-        flat_state[idx] |= OCCUPIED
+        ijk = ijk[inside]
+        flat_state[self._flat(ijk[:, 0], ijk[:, 1], ijk[:, 2])] |= OCCUPIED
+
+    def _flat(self, i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """Flat C-order indices of voxels (i, j, k) in the grid (``spec.flat``, per axis)."""
+        _, ny, nz = self.spec.shape
+        return (i * ny + j) * nz + k
 
     def known(self, points_m: np.ndarray) -> np.ndarray:
         """(N,) bool: whether each point's voxel has been reached by depth (free or occupied).

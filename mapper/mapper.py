@@ -59,7 +59,9 @@ class Mapper:
     """
 
     def __init__(self, cfg: MapperConfig, bounds_m: tuple[float, ...] | None = None,
-                 checkpoint: Checkpoint | None = None) -> None:
+                 checkpoint: Checkpoint | None = None, precision: str = "float32") -> None:
+        """``precision``: the model's arithmetic (:class:`mapper.model.OccupancyPredictor`);
+        missions run it in float32."""
         self.cfg = cfg
         self.surface = VoxelSurface(cfg.voxel_m)
         self.grid: OccupancyGrid | None = None
@@ -69,7 +71,7 @@ class Mapper:
                 raise ValueError("the learned prediction needs the box of interest")
             self.grid = OccupancyGrid(GridSpec.around(bounds_m, checkpoint.window.voxel_m))
             from mapper.model import OccupancyPredictor
-            self.predictor = OccupancyPredictor(checkpoint, self.grid)
+            self.predictor = OccupancyPredictor(checkpoint, self.grid, precision)
 
     @classmethod
     def for_mission(cls, cfg: MissionConfig) -> Mapper:

@@ -17,6 +17,7 @@ window on two CPU cores, and one window per step covers what the camera can see.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from dataclasses import asdict, dataclass
@@ -75,14 +76,21 @@ def crop(volume: np.ndarray, start: np.ndarray, size: tuple[int, int, int],
     return out
 
 
+def encode_state(state: np.ndarray) -> np.ndarray:
+    """(3, X, Y, Z) float32: the first channels of :func:`encode` (occupied, free, unknown)."""
+    out = np.empty((3, *state.shape), dtype=np.float32)
+    out[0] = (state & OCCUPIED) != 0
+    out[1] = state == FREE
+    out[2] = state == 0
+    return out
+
+
 def encode(state: np.ndarray, below: int) -> np.ndarray:
     """(8, X, Y, Z) float32 network input from an (X, Y, Z) uint8 state window whose camera
     voxel is (X // 2, Y // 2, below)."""
     nx, ny, nz = state.shape
     out = np.empty((IN_CHANNELS, nx, ny, nz), dtype=np.float32)
-    out[0] = (state & OCCUPIED) != 0
-    out[1] = state == FREE
-    out[2] = state == 0
+    out[:3] = encode_state(state)
     x = (np.arange(nx, dtype=np.float32) - nx // 2) / 16.0
     y = (np.arange(ny, dtype=np.float32) - ny // 2) / 16.0
     out[3] = ((np.arange(nz, dtype=np.float32) - below) / 16.0)[None, None, :]
@@ -196,6 +204,19 @@ def weights_sha256(model: nn.Module) -> str:
 
 # ----------------------------------------------------------------------------- inference
 
+#: The arithmetic the model may run in (OccupancyPredictor's ``precision``).
+PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
+def to_float16(values: np.ndarray) -> np.ndarray:
+    """``values.astype(np.float16)`` of a float32 array, to the bit: both round to nearest,
+    ties to even, but numpy converts the results that are float16 subnormals (the many
+    probabilities under 6e-5 of empty space) one by one in software, some 3 ms a window, where
+    torch uses the CPU's conversion instruction."""
+    return torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32)).to(
+        torch.float16).numpy()
+
+
 class OccupancyPredictor:
     """Runs the model on the window around the camera and keeps what it predicted, per voxel.
 
@@ -203,29 +224,70 @@ class OccupancyPredictor:
     keep their last prediction (0 where never predicted).
     """
 
-    def __init__(self, checkpoint: Checkpoint, grid: OccupancyGrid) -> None:
+    def __init__(self, checkpoint: Checkpoint, grid: OccupancyGrid,
+                 precision: str = "float32") -> None:
+        """``precision``: the arithmetic of the model's pass. ``float32`` is the trained
+        model's, and gives every published number. ``bfloat16`` runs it about 1.7 times faster
+        on a CPU with native bfloat16 (AVX512-BF16 or AMX), and moves the numbers a little:
+        on flyer missions' windows, probabilities by at most 0.015 and the 0.5 decision of
+        about one covered voxel in 8000; most predicted points' sub-voxel heights move
+        slightly, under 0.5% by more than 0.2 m. Without native support it is slower than
+        float32."""
         if abs(checkpoint.window.voxel_m - grid.spec.voxel_m) > 1e-9:
             raise ValueError("the grid's voxel size differs from the model's")
-        self.model = checkpoint.model
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision {precision!r} is not one of {', '.join(PRECISIONS)}")
+        self.dtype = PRECISIONS[precision]
+        self.model = (checkpoint.model if self.dtype == torch.float32
+                      else copy.deepcopy(checkpoint.model).to(self.dtype))
         self.window = checkpoint.window
         self.grid = grid
         self.probability = np.zeros(grid.spec.shape, dtype=np.float16)
         """(nx, ny, nz) float16 latest predicted occupancy probability of each voxel."""
         self.covered = np.zeros(grid.spec.shape, dtype=bool)
         """(nx, ny, nz) bool: voxels that have been inside a prediction window."""
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # start and state predicted
+        self._x: np.ndarray | None = None
 
     @torch.inference_mode()
     def update(self, camera_m: np.ndarray) -> None:
         """Predict the window around ``camera_m`` from the grid as it is now."""
         w = self.window
         start = w.start(self.grid.spec, camera_m)
-        x = encode(crop(self.grid.state, start, w.size), w.below)
-        logits = self.model(torch.from_numpy(x)[None])[0, 0].numpy()
-        prob = 1.0 / (1.0 + np.exp(-logits))
+        state = crop(self.grid.state, start, w.size)
+        if (self._last is not None and np.array_equal(self._last[0], start)
+                and np.array_equal(self._last[1], state)):
+            # The same window holding the same grid as the last prediction (a platform that
+            # could not move, looking at what it saw): the model would give the same numbers,
+            # and they are in ``probability`` already.
+            return
+        self._last = (start, state)
+        x = self._input(w)
+        x[:3] = encode_state(state)
+        logits = self.model(torch.from_numpy(x)[None].to(self.dtype))[0, 0].to(
+            torch.float32).numpy()
+        prob = to_float16(1.0 / (1.0 + np.exp(-logits)))
         where = overlap(start, w.size, self.grid.spec.shape)
         if where is not None:
             self.probability[where[0]] = prob[where[1]]
             self.covered[where[0]] = True
+
+    def _input(self, w: WindowSpec) -> np.ndarray:
+        """The network's input buffer: channels 3.. (the position in the window) never change,
+        so they are written once, and each update writes the state's channels."""
+        if self._x is None:
+            self._x = encode(np.zeros(w.size, dtype=np.uint8), w.below)
+        return self._x
+
+    def _at_least(self, threshold: float) -> np.ndarray:
+        """(nx, ny, nz) bool: ``probability >= threshold``. The probabilities are sigmoid
+        outputs in [0, 1] (never negative, never NaN), and the bit patterns of non-negative
+        float16 numbers order as their values: where the threshold is a float16 number, its
+        bits are compared, without float16 arithmetic (which numpy does in software)."""
+        t16 = np.float16(threshold)
+        if threshold > 0 and float(t16) == threshold:
+            return self.probability.view(np.uint16) >= t16.view(np.uint16)
+        return self.probability >= threshold
 
     def predicted(self, threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
         """The prediction as surface points: (M, 3) float32 and their (M,) float32
@@ -242,12 +304,13 @@ class OccupancyPredictor:
         0.25 m ground clearance: the rover read predicted ground as obstacles and stood still.
         """
         observed = (self.grid.state & OCCUPIED) != 0
-        predicted = (self.probability >= threshold) & ~observed
-        ijk = np.argwhere(predicted | observed)  # C order: columns contiguous, k ascending
-        if len(ijk) == 0:
+        predicted = self._at_least(threshold) & ~observed
+        flat = np.flatnonzero(predicted | observed)  # C order: columns contiguous, k ascending
+        if len(flat) == 0:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
-        pred = predicted[tuple(ijk.T)]
-        prob = self.probability[tuple(ijk.T)].astype(np.float64) * pred
+        ijk = np.stack(np.unravel_index(flat, predicted.shape), axis=1)  # np.argwhere, cheaper
+        pred = predicted.reshape(-1)[flat]
+        prob = self.probability.reshape(-1)[flat].astype(np.float64) * pred
         starts = np.r_[True, np.any(ijk[1:, :2] != ijk[:-1, :2], axis=1)
                        | (ijk[1:, 2] != ijk[:-1, 2] + 1)]
         run = np.cumsum(starts) - 1

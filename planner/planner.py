@@ -176,15 +176,20 @@ class BeamPlanner(Planner):
         model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts)
         dims = 3 if cfg.platform == "flyer" else 2
 
-        def extend(node: _Trajectory, n: int) -> list[_Trajectory]:
-            last = node.states[-1]
+        def extend(nodes: list[_Trajectory], n: int) -> list[_Trajectory]:
+            """The children of ``nodes``: ``n`` samples from the end of each, in turn, those
+            whose segment is free, all their views rendered at once."""
+            free = []
+            for node in nodes:
+                last = node.states[-1]
+                free += [(node, c) for c in model.sample(rng, n, around=last)
+                         if model.segment_free(last, c)]
+            views = field.visible_many([model.camera(c) for _, c in free])
             out = []
-            for c in model.sample(rng, n, around=last):
-                if not model.segment_free(last, c):
-                    continue
-                vis = field.visible(model.camera(c))
+            for (node, c), vis in zip(free, views, strict=True):
                 seen = node.seen.copy()
                 seen[vis] = True
+                last = node.states[-1]
                 out.append(_Trajectory(node.states + [c], seen, node.gain + field.gain(vis,
                                                                                   node.seen),
                                        node.travel_m + float(np.linalg.norm(
@@ -193,14 +198,14 @@ class BeamPlanner(Planner):
             return out
 
         root = _Trajectory([model.current], np.zeros(len(field), dtype=bool), 0, 0.0, -1)
-        level = extend(root, pc.n_candidates)
+        level = extend([root], pc.n_candidates)
         for i, t in enumerate(level):
             t.first = i
         firsts = list(level)
         best_of_first = {t.first: t.gain for t in level}  # best continuation of each first motion
         beam = sorted(level, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
         for _ in range(pc.beam_depth - 1):
-            children = [c for node in beam for c in extend(node, pc.beam_branch)]
+            children = extend(beam, pc.beam_branch)
             if not children:
                 break
             for c in children:

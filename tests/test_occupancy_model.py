@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from mapper.evaluate import Counts, heightmap_completion, score_maps
 from mapper.grid import FREE, OCCUPIED, GridSpec, OccupancyGrid
+from mapper.integrate import backproject
 from mapper.model import (
     IN_CHANNELS,
     OccupancyNet,
@@ -253,3 +254,91 @@ def test_prediction_is_published_as_a_surface_not_a_thick_band():
     assert by_column[2] == pytest.approx([(k + 0.5) * spec.voxel_m for k in range(1, 8)])
     assert by_column[3] == []
     assert np.all(prob >= 0.5)
+
+
+def test_free_space_is_the_rays_samples_up_to_a_voxel_short_of_each_return():
+    """Every ray_stride-th return's ray, sampled every half voxel and stopping a voxel short of
+    the return, marks its voxels free (the mask-and-nonzero formulation, written out here)."""
+    rng = np.random.default_rng(5)
+    spec = GridSpec((-12.0, -12.0, -6.0), 0.4, (60, 60, 30))
+    k = CameraIntrinsics.from_fov(40, 30, 45.0)
+    depth = rng.uniform(0.5, 14.0, (30, 40)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = np.nan
+    T = _camera_looking_along_x(0.3, -0.2, 0.7)
+    T[:3, :3] = T[:3, :3] @ np.array([[1, 0, 0], [0, np.cos(0.4), -np.sin(0.4)],
+                                      [0, np.sin(0.4), np.cos(0.4)]])
+    grid = OccupancyGrid(spec, ray_stride_px=2)
+    grid.integrate(depth, k, T)
+    sub = np.full_like(depth, np.nan)
+    sub[::2, ::2] = depth[::2, ::2]
+    hits = backproject(sub, k, T).astype(np.float64)
+    d = hits - T[:3, 3]
+    length = np.linalg.norm(d, axis=1)
+    unit = d / np.maximum(length, 1e-9)[:, None]
+    t = np.arange(int(np.ceil(length.max() / 0.2)) + 1) * 0.2
+    rows, cols = np.nonzero(t[None, :] < (length - 0.4)[:, None])
+    ijk, inside = spec.index(T[:3, 3] + unit[rows] * t[cols, None])
+    expected = np.zeros(spec.shape, dtype=np.uint8).reshape(-1)
+    expected[spec.flat(ijk[inside])] |= FREE
+    ijk, inside = spec.index(backproject(depth, k, T))
+    expected[spec.flat(ijk[inside])] |= OCCUPIED
+    assert np.array_equal(grid.state.reshape(-1), expected)
+
+
+def test_prediction_reads_thresholds_exactly_and_skips_an_unchanged_window():
+    ckpt = load_checkpoint()
+    w = ckpt.window
+    spec = GridSpec((0.0, 0.0, 0.0), w.voxel_m, w.size)
+    grid = OccupancyGrid(spec)
+    predictor = OccupancyPredictor(ckpt, grid)
+    p = np.random.default_rng(2).random(spec.shape).astype(np.float16)
+    p.reshape(-1)[:6] = [0.0, 0.5, np.float16(0.5) - np.float16(2**-12), 1.0, 6e-8, 0.25]
+    predictor.probability[:] = p
+    for threshold in (0.5, 0.25, 0.3, 1.0, 0.0):
+        assert np.array_equal(predictor._at_least(threshold), p >= threshold), threshold
+    calls = []
+    model = predictor.model
+    predictor.model = lambda x: calls.append(1) or model(x)
+    camera = spec.centres(np.array([[w.size[0] // 2, w.size[1] // 2, w.below]]))[0]
+    predictor.update(camera)
+    first = predictor.probability.copy()
+    predictor.update(camera)  # the same window, the same grid: the same numbers, no model run
+    assert len(calls) == 1 and np.array_equal(predictor.probability, first)
+    grid.state[3, 3, 3] = OCCUPIED
+    predictor.update(camera)
+    assert len(calls) == 2
+
+
+def test_probabilities_round_to_float16_as_numpy_rounds_them():
+    """to_float16 at every float16 number in [0, 1], at every rounding boundary between two
+    of them (a tie: to even) and a few float32 steps either side, and at random."""
+    from mapper.model import to_float16
+    half = np.arange(0, 0x3C01, dtype=np.uint16).view(np.float16).astype(np.float32)
+    mid = ((half[:-1].astype(np.float64) + half[1:]) / 2).astype(np.float32)  # exact
+    values = [half, mid]
+    for direction in (np.float32(2.0), np.float32(-1.0)):
+        x = mid
+        for _ in range(3):
+            x = np.nextafter(x, direction, dtype=np.float32)
+            values.append(x)
+    values.append(np.random.default_rng(4).random(1_000_000, dtype=np.float32))
+    v = np.concatenate(values)
+    assert np.array_equal(to_float16(v).view(np.uint16), v.astype(np.float16).view(np.uint16))
+
+
+def test_the_model_in_bfloat16_predicts_nearly_what_it_does_in_float32():
+    ckpt = load_checkpoint()
+    w = ckpt.window
+    spec = GridSpec((0.0, 0.0, 0.0), w.voxel_m, w.size)
+    grid = OccupancyGrid(spec)
+    grid.state[: w.size[0] // 2, :, w.below - 4] = OCCUPIED
+    grid.state[: w.size[0] // 2, :, w.below - 3:] = FREE
+    camera = spec.centres(np.array([[w.size[0] // 2 - 1, w.size[1] // 2, w.below]]))[0]
+    full, half = OccupancyPredictor(ckpt, grid), OccupancyPredictor(ckpt, grid, "bfloat16")
+    full.update(camera)
+    half.update(camera)
+    a, b = full.probability.astype(np.float32), half.probability.astype(np.float32)
+    assert np.abs(a - b).max() < 0.05 and np.mean((a >= 0.5) != (b >= 0.5)) < 1e-3
+    assert ckpt.model.stem[0].weight.dtype == torch.float32  # the checkpoint's is untouched
+    with pytest.raises(ValueError, match="float32, bfloat16"):
+        OccupancyPredictor(ckpt, grid, "float16")

@@ -177,3 +177,42 @@ def test_beam_segments_are_checked_along_their_length():
     assert model.is_free(behind) and model.is_free(beside)
     assert not model.segment_free(here, behind)
     assert model.segment_free(here, beside)
+
+
+def test_gain_field_views_are_visible_mask_to_the_bit():
+    """GainField.visible projects only the primitives of the blocks in a view's frustum, and
+    each as visible_mask does: the same primitives come out, for views from anywhere, in any
+    direction, over terrain, walls and scattered points."""
+    from scipy.spatial.transform import Rotation
+
+    from planner.gain import _erode
+    rng = np.random.default_rng(7)
+    xs, ys = np.meshgrid(np.arange(-15, 15, 0.15), np.arange(-15, 15, 0.15))
+    terrain = np.c_[xs.ravel(), ys.ravel(), np.sin(xs.ravel() / 3) + 0.1 * ys.ravel()]
+    pts = np.vstack([terrain, grid_wall(4.0, n=60, size=3.0), grid_wall(-9.0, n=40),
+                     rng.uniform([-16, -16, -2], [16, 16, 6], (3000, 3))]).astype(np.float32)
+    novel = rng.random(len(pts)) < 0.5
+    field = GainField(pts, novel, 0.3, K, 0.3, 20.0, 0.3)
+    assert field.weight.sum() == novel.sum()
+    rotations = Rotation.random(60, random_state=3).as_matrix()
+    seen_any = 0
+    cameras, expect = [], []
+    for i, R in enumerate(rotations):
+        T = np.eye(4)
+        T[:3, :3] = R if i % 2 else R_BODY_OPTICAL @ Rotation.from_euler(
+            "y", rng.uniform(-0.6, 0.2)).as_matrix()  # half of them level-ish, as a camera
+        T[:3, 3] = rng.uniform([-20, -20, -1], [20, 20, 6])
+        expected = np.flatnonzero(visible_mask(field.centres, T, K, 0.3, 20.0, 0.3))
+        assert np.array_equal(field.visible(T), expected)
+        seen_any += len(expected) > 50
+        cameras.append(T)
+        expect.append(expected)
+    assert seen_any > 10  # the views did see things
+    together = field.visible_many(cameras)  # every view with its own z-buffer
+    assert all(np.array_equal(a, b) for a, b in zip(together, expect, strict=True))
+    # The z-buffer's erosion is scipy's 3 x 3 minimum filter with edges repeated.
+    from scipy.ndimage import minimum_filter
+    for shape in [(30, 40), (1, 1), (1, 5), (5, 1), (7, 3)]:
+        z = rng.random(shape)
+        z[rng.random(shape) < 0.5] = np.inf
+        assert np.array_equal(_erode(z), minimum_filter(z, size=3, mode="nearest"))
