@@ -76,7 +76,10 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
             transport.tick(MissionStatus(t, cfg.steps, "running", condition, cov, collisions))
             if t > 0:
                 path = transport.receive("path", t - 1)
-                rejected = transport.poll("rejected", t - 1)  # published before the path
+                # The built-in planner always says what it rejected; a planner of the user's own
+                # (--planner.command) need not, and is not waited for.
+                external = (ops.cfg if ops else cfg).planner.command
+                rejected = (transport.poll if external else transport.receive)("rejected", t - 1)
                 record.paths.append(path)
                 report = transport.receive("execution", t - 1)
                 collisions += int(report.collided)

@@ -102,7 +102,8 @@ def test_table2_gives_mean_and_std_over_repetitions_per_start():
 
 #: A small study: 10 runs of 3 steps.
 STUDY = ("study", "--scenes", "arch_field", "--starts", "a", "b", "--conditions", "obs",
-         "learned", "gated", "--filter-reps", "2", "--steps", "3", "--bootstrap", "200")
+         "learned", "gated", "--reps", "1", "--filter-reps", "2", "--steps", "3",
+         "--bootstrap", "200")
 
 
 def study(out: Path, *extra: str, **kw) -> subprocess.Popen:
