@@ -60,8 +60,8 @@ class Mapper:
 
     def __init__(self, cfg: MapperConfig, bounds_m: tuple[float, ...] | None = None,
                  checkpoint: Checkpoint | None = None, precision: str = "float32") -> None:
-        """``precision``: the model's arithmetic (:class:`mapper.model.OccupancyPredictor`);
-        missions run it in float32."""
+        """``precision``: the model's arithmetic (:class:`mapper.model.OccupancyPredictor`;
+        missions take ``MapperConfig.precision``)."""
         self.cfg = cfg
         self.surface = VoxelSurface(cfg.voxel_m)
         self.grid: OccupancyGrid | None = None
@@ -75,7 +75,8 @@ class Mapper:
 
     @classmethod
     def for_mission(cls, cfg: MissionConfig) -> Mapper:
-        return cls(cfg.mapper, cfg.scene.bounds_m, mission_checkpoint(cfg))
+        return cls(cfg.mapper, cfg.scene.bounds_m, mission_checkpoint(cfg),
+                   cfg.mapper.precision)
 
     def integrate(self, frame: SensorFrame) -> None:
         """Take one frame into S_t, the grid and the model's prediction, without reading the

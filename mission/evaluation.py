@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gate.gate import oracle_tags
 from planner.planner import gain_field, novel_mask
 from planner.platforms import motion_model
 from rovergate.config import MissionConfig
@@ -105,9 +104,9 @@ class StepEvaluator:
         pts = planner_map.points
         fp = np.zeros(len(pts), dtype=bool)
         pred = np.flatnonzero(pts["source"] == Source.PREDICTED)
-        if len(pred):
-            fp[pred] = oracle_tags(xyz(pts[pred]), self.reference, self.cfg.oracle_delta_m,
-                                   self.tree).false_positive
+        if len(pred):  # the oracle's FP tag (gate.gate.oracle_tags), without its FN half
+            d, _ = self.tree.query(xyz(pts[pred]), distance_upper_bound=self.cfg.oracle_delta_m)
+            fp[pred] = d > self.cfg.oracle_delta_m
         return fp
 
     def decision(self, planner_map: PlannerMap, path: PlanPath, rejected: PlanPath | None,
@@ -121,12 +120,17 @@ class StepEvaluator:
         goal = path.poses[-1] if path.poses else T_map_base
         novel = novel_mask(planner_map, cfg.planner.observed_min_views)
         if share is None and (novel & fp).any():
-            field = gain_field(cfg, points, novel)
             cam = camera_from_base(goal.matrix(), cfg.sensor, cfg.platform)
+            # Only primitives within the sensor's depth range take part in the render (the
+            # z-buffer too), and all of their points lie within a voxel diagonal of it: the
+            # field of those points alone renders the same view, exactly.
+            depth = (points - cam[:3, 3]) @ cam[:3, 2]
+            near = depth <= cfg.sensor.max_range_m + cfg.planner.gain_voxel_m * np.sqrt(3)
+            field = gain_field(cfg, points[near], novel[near])
             visible = field.visible(cam)
             total = field.gain(visible)
             if total > 0:
-                share = gain_field(cfg, points, novel & fp).gain(visible) / total
+                share = int(field.weights((novel & fp)[near])[visible].sum()) / total
         elif share is None:
             share = 0.0  # no novel false positive: none of the gain comes from one
         blocked = None if rejected is None else 0

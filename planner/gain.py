@@ -136,6 +136,7 @@ class GainField:
                                                  return_counts=True)
         self.centres = np.ascontiguousarray(centres[order])
         self.weight = weight[order]
+        self._primitive = np.argsort(order, kind="stable")[inverse]  # each point's primitive
         self._block_centres = (blk[order[first]] + 0.5) * BLOCK_M
         # The view's frustum as half-spaces n . p >= b of the camera frame (unit inward normals):
         # the range limits in z, and the side planes through the optical centre. A pixel's
@@ -149,6 +150,15 @@ class GainField:
         self._normals = np.vstack([[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], sides])  # (6, 3)
         radius = BLOCK_M * math.sqrt(3.0) / 2 + 1e-3
         self._bounds = np.array([min_range_m, -max_range_m, 0.0, 0.0, 0.0, 0.0]) - radius
+
+    def weights(self, mask: np.ndarray) -> np.ndarray:
+        """(P,) int64: how many of the points in (N,) bool ``mask`` each primitive holds (the
+        ``weight`` a field built with ``novel = mask`` would have; evaluation weighs the gain
+        of a subset of the points with it)."""
+        if len(self.centres) == 0:
+            return np.zeros(0, dtype=np.int64)
+        return np.bincount(self._primitive, weights=mask.astype(np.float64),
+                           minlength=len(self.centres)).astype(np.int64)
 
     def __len__(self) -> int:
         return len(self.centres)

@@ -161,6 +161,9 @@ class MapperConfig:
     """Run the learned occupancy model: auto (when the condition uses it), on, or off."""
     checkpoint: str = ""
     """Occupancy model weights. Empty: the checkpoint shipped in the package."""
+    precision: str = "bfloat16"
+    """The model's arithmetic: bfloat16 (1.8 times faster on the 2-core machine; about 0.1% of
+    the window's voxels land on the other side of 0.5) or float32 (the trained model's own)."""
 
 
 @dataclass
@@ -379,6 +382,9 @@ def check_values(cfg: MissionConfig) -> None:
             ("--sensor.min-range-m", cfg.sensor.min_range_m)):
         if not value > 0:
             raise ConfigError(f"{flag} must be positive, got {value}")
+    if cfg.mapper.precision not in ("float32", "bfloat16"):
+        raise ConfigError(f"--mapper.precision must be float32 or bfloat16, got "
+                          f"{cfg.mapper.precision!r}")
     if not cfg.sensor.max_range_m > cfg.sensor.min_range_m:
         raise ConfigError(f"--sensor.max-range-m ({cfg.sensor.max_range_m}) must exceed "
                           f"--sensor.min-range-m ({cfg.sensor.min_range_m})")
