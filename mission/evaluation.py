@@ -110,9 +110,10 @@ class StepEvaluator:
         return fp
 
     def decision(self, planner_map: PlannerMap, path: PlanPath, rejected: PlanPath | None,
-                 T_map_base: Pose) -> Decision:
+                 T_map_base: Pose, contacts: np.ndarray | None = None) -> Decision:
         """The decision measure of one step (``T_map_base``: the pose it planned from;
-        ``rejected`` None: the planner does not say what it rejected)."""
+        ``rejected`` None: the planner does not say what it rejected; ``contacts``: the
+        contact points the planner knew)."""
         cfg = self.cfg
         fp = self.false_positives(planner_map)
         points = xyz(planner_map.points)
@@ -135,12 +136,19 @@ class StepEvaluator:
             share = 0.0  # no novel false positive: none of the gain comes from one
         blocked = None if rejected is None else 0
         if rejected is not None and fp.any() and rejected.poses:
-            keep = ~fp
-            model = motion_model(cfg, points[keep], T_map_base,
-                                 predicted=(planner_map.points["source"]
-                                            == Source.PREDICTED)[keep])
+            # Occupancy alone, on the map and on the map without its false positives, from
+            # where the planner planned (its escape, its contacts; known free space does not
+            # depend on the map, so it is left out of both).
+            predicted = planner_map.points["source"] == Source.PREDICTED
+            full = motion_model(cfg, points, T_map_base, predicted=predicted,
+                                contacts=contacts)
+            clean = motion_model(cfg, points[~fp], T_map_base, predicted=predicted[~fp],
+                                 contacts=contacts)
+            for model in (full, clean):
+                model.leave_blocked_start()
             for pose in rejected.poses:
-                g = model.state_of(pose)
-                if model.is_free(g) and model.segment_free(model.current, g):
+                g = clean.state_of(pose)
+                if (not (full.is_free(g) and full.segment_free(full.current, g))
+                        and clean.is_free(g) and clean.segment_free(clean.current, g)):
                     blocked += 1
         return Decision(share, blocked)

@@ -16,6 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from mission.coverage import CoverageEvaluator
 from mission.evaluation import StepEvaluator, collision_class
 from mission.metrics import suppression_audit
@@ -63,6 +65,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         for t in range(cfg.steps + 1):
             if STOP.is_set():  # Ctrl-C or SIGTERM: stop at the step boundary
                 raise KeyboardInterrupt
+            external = bool((ops.cfg if ops else cfg).planner.command)
             if ops:
                 t_boundary = time.perf_counter()
                 ops.boundary(t)  # the link, and ground commands (they may pause or abort)
@@ -77,8 +80,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
             if t > 0:
                 path = transport.receive("path", t - 1)
                 # The built-in planner always says what it rejected; a planner of the user's own
-                # (--planner.command) need not, and is not waited for.
-                external = (ops.cfg if ops else cfg).planner.command
+                # (--planner.command) need not, and is not waited for. (Which planner planned
+                # step t-1 is read before this boundary, which may swap it.)
                 rejected = (transport.poll if external else transport.receive)("rejected", t - 1)
                 record.paths.append(path)
                 report = transport.receive("execution", t - 1)
@@ -100,7 +103,9 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                         judge.tree)[1])
                 record.collision_class.append(collision_class(
                     report, planner_map, cfg, previous_base))
-                decision = judge.decision(planner_map, path, rejected, previous_base)
+                contacts = np.array([e.contact for e in record.executions[:-1]
+                                     if e.contact is not None]).reshape(-1, 3)
+                decision = judge.decision(planner_map, path, rejected, previous_base, contacts)
                 record.fp_gain_share.append(decision.fp_gain_share)
                 record.rejected_by_fp.append(decision.rejected_by_fp)
             surface = transport.receive("surface", t)

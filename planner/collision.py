@@ -195,8 +195,9 @@ class OccupancyCollisionModel:
             h, w = raw.shape
             above[max(di, 0):h + min(di, 0), max(dj, 0):w + min(dj, 0)] |= \
                 out[max(-di, 0):h - max(di, 0), max(-dj, 0):w - max(dj, 0)]
-        Kr = K * ~above
-        _, self._plane = self._fit(Kr, Z)
+        known_r, coef_r = self._fit(K * ~above, Z)
+        # Where too few cells are left for the refit, the first fit's plane stands.
+        self._plane = np.where(known_r[..., None], coef_r, coef)
         self._plane_known = known
         return known, ok | ~known
 

@@ -182,8 +182,11 @@ class BeamPlanner(Planner):
             free = []
             for node in nodes:
                 last = node.states[-1]
-                free += [(node, c) for c in model.sample(rng, n, around=last)
-                         if model.segment_free(last, c)]
+                for c in model.sample(rng, n, around=last):
+                    if model.segment_free(last, c):
+                        free.append((node, c))
+                    elif node is root:
+                        blocked.append(c)  # a first motion found infeasible
             views = field.visible_many([model.camera(c) for _, c in free])
             out = []
             for (node, c), vis in zip(free, views, strict=True):
@@ -198,6 +201,7 @@ class BeamPlanner(Planner):
             return out
 
         root = _Trajectory([model.current], np.zeros(len(field), dtype=bool), 0, 0.0, -1)
+        blocked: list = []
         level = extend([root], pc.n_candidates)
         for i, t in enumerate(level):
             t.first = i
@@ -212,14 +216,13 @@ class BeamPlanner(Planner):
                 best_of_first[c.first] = max(best_of_first[c.first], c.gain)
             beam = sorted(children, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
         order = sorted(firsts, key=lambda t: (-best_of_first[t.first], t.travel_m))
-        rejected = []
-        for t in order[: pc.max_attempts]:
+        rejected = list(blocked)  # the first motions found blocked, then OMPL's failures
+        for tried, t in enumerate(order[: pc.max_attempts]):
             goal = t.states[1]
-            path = model.plan(model.current, goal, seed=plan_seed(cfg, step, len(rejected)))
+            path = model.plan(model.current, goal, seed=plan_seed(cfg, step, tried))
             if path is not None and model.length(model.prefix + path) <= pc.max_step_m:
-                return PlanResult(motion(step, path, model),
-                                  int(best_of_first[t.first]), len(rejected) + 1,
-                                  "best-feasible",
+                return PlanResult(motion(step, path, model), int(best_of_first[t.first]),
+                                  tried + 1, "best-feasible",
                                   GreedyPlanner._to_path(step, rejected, model))
             rejected.append(goal)
         return fallback(step, model, T_map_base, rejected)

@@ -145,6 +145,10 @@ class MotionModel(abc.ABC):
         return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
 
 
+def _inside(state, box: tuple[float, float, float, float]) -> bool:
+    return box[0] <= state[0] <= box[2] and box[1] <= state[1] <= box[3]
+
+
 def outside_body(points: np.ndarray, T_map_base: Pose, rover: RoverConfig,
                  margin_m: float = 0.05) -> np.ndarray:
     """(N,) bool: the map points that are not inside the rover's body where it stands.
@@ -219,11 +223,12 @@ class RoverModel(MotionModel):
         """Forward, then backward, along the heading: every state of the way keeps the true
         body (no margin) off the map's obstacles on traversable ground, the end is valid."""
         x, y, yaw = self.current
+        box = self.inner_box()
         for sign in (1.0, -1.0):
             ux, uy = sign * np.cos(yaw), sign * np.sin(yaw)
             for d in np.arange(ESCAPE_STEP_M, ESCAPE_M + 1e-9, ESCAPE_STEP_M):
                 s = (x + d * ux, y + d * uy, yaw)
-                if not self.ground.is_free(*s, margin=False):
+                if not _inside(s, box) or not self.ground.is_free(*s, margin=False):
                     break
                 if self.is_free(s):
                     return s
@@ -234,7 +239,12 @@ class FlyerModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
                  predicted: np.ndarray | None = None, free: FreeSpace | None = None,
                  contacts: np.ndarray | None = None) -> None:
-        super().__init__(cfg, points, T_map_base, predicted)
+        # Self filter: nothing the map holds inside the sphere where the flyer is can be real
+        # (the camera cannot see within its minimum range; a prediction can land there).
+        keep = (np.sum((points - T_map_base.position) ** 2, axis=1)
+                > cfg.flyer.radius_m ** 2) if len(points) else np.ones(0, dtype=bool)
+        points = points[keep]
+        super().__init__(cfg, points, T_map_base, None if predicted is None else predicted[keep])
         solid = points if contacts is None or not len(contacts) else np.vstack(
             [points, contacts]).astype(np.float32)
         self.sphere = FlyerCollisionModel(solid, cfg.flyer, self.ground, free=free)
@@ -315,12 +325,13 @@ class FlyerModel(MotionModel):
         if near is not None and np.linalg.norm(p0 - near) > 1e-6:
             directions.append((p0 - near) / np.linalg.norm(p0 - near))
         directions += [np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])]
+        box = self.inner_box()
         for u in directions:
             last = self.sphere.distance(p0)
             for d in np.arange(ESCAPE_STEP_M, ESCAPE_M + 1e-9, ESCAPE_STEP_M):
                 p = p0 + d * u
                 dist = self.sphere.distance(p)
-                if (dist < last - 1e-9 or dist <= self.cfg.flyer.radius_m
+                if (not _inside(p, box) or dist < last - 1e-9 or dist <= self.cfg.flyer.radius_m
                         or (self.sphere.free is not None
                             and not self.sphere.free.is_free(*p))):
                     break

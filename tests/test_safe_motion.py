@@ -89,7 +89,7 @@ def test_the_rover_leaves_a_slope_it_stands_on_and_still_sees_a_rock_there():
 
 def test_a_flyer_the_map_now_blocks_leaves_only_by_a_checked_escape():
     cfg = mission("flyer")
-    point = np.array([0.0, 0.25, 1.6])  # 0.25 m to its left: inside its reach
+    point = np.array([0.0, 0.35, 1.6])  # 0.35 m to its left: inside its reach (0.4 m)
     pts = np.vstack([ground(), point]).astype(np.float32)
     model = FlyerModel(cfg, pts, Pose.from_xyz_yaw_pitch(0.0, 0.0, 1.6, 0.0, 0.0))
     start = model.current
