@@ -79,7 +79,7 @@ METRICS = (("final_coverage", "ΔC_T", 3), ("auc", "ΔAUC", 3), ("s70", "ΔS70",
 #: Count fields of metrics.json for the failure modes (absent in older runs: read with .get).
 FAILURE_COUNTS = (("collisions", "collisions, all"),
                   ("collisions_planner_fault", "collisions, planner fault"),
-                  ("collisions_unseen", "collisions, unseen obstacle"),
+                  ("collisions_unseen", "collisions, unseen geometry"),
                   ("stuck_steps", "stuck steps"))
 
 
@@ -390,7 +390,7 @@ def table1(rows: list[dict], conditions: tuple[str, ...], resamples: int, steps:
 
 def failure_modes(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
     """Table 1's companion: per condition, over all its runs, the collisions (all, planner
-    fault, unseen obstacle) and stuck steps with the runs that had any, the median of the
+    fault, unseen geometry) and stuck steps with the runs that had any, the median of the
     runs' minimum clearance, the mean share of the chosen viewpoint's gain owed to oracle false
     positives, and the candidates rejected because of them. A count is shown only when every
     run reports it (runs from before a field existed make it "—")."""
@@ -428,15 +428,16 @@ def failure_modes(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, d
         figures[c] = fig
         lines.append(f"| {LABELS.get(c, c)} | {len(runs)} | " + " | ".join(cells) + " |")
     notes = ["", "Totals over every run of the condition (all starts and repetitions), with the "
-             "runs that had any in brackets. Collisions, all: `collisions`; planner fault and "
-             "unseen obstacle: the same collisions as metrics.json classifies them "
-             "(`collisions_planner_fault`, `collisions_unseen`); stuck steps: `stuck_steps`. "
+             "runs that had any in brackets. Collisions, all: `collisions`; planner fault "
+             "(the map held an obstacle within 0.15 m of the contact) and unseen geometry "
+             "(it did not): `collisions_planner_fault`, `collisions_unseen`; stuck steps "
+             "(under 0.5 m of net progress over the last 10 steps): `stuck_steps`. "
              "Min clearance: the median over runs of each run's `min_clearance_m`. FP gain "
              "share: per step, the share of the chosen viewpoint's rendered gain that came "
-             "from oracle false positives, averaged over steps, then over runs (conditions "
-             "without predictions have none). Rejected by FP: candidate viewpoints rejected as "
-             "infeasible because of oracle false positives, summed over runs. \"—\": not "
-             "recorded by these runs."]
+             "from oracle false positives, averaged over steps, then over runs (0 in "
+             "conditions whose map holds no prediction). Rejected by FP: candidate viewpoints "
+             "rejected as infeasible whose occupancy check failed only because of oracle false "
+             "positives, summed over runs. \"—\": not recorded by these runs."]
     return "\n".join(lines + notes) + "\n", figures
 
 

@@ -3,14 +3,14 @@
 The planner-facing map holds what is occupied; it says nothing of space no camera has looked
 at. A flyer that treats that space as free flies backwards into walls its camera never saw. So
 the flyer moves only through space known to be free: a voxel (``voxel_m``) is known free once a
-frame's return at its centre's pixel ends beyond it (the ray passed through it; +Inf, nothing
-within range, counts), or once the platform's own body has occupied it. An invalid return (NaN:
+frame's ray passed through it on its way to a return farther on (+Inf, nothing within range,
+counts), or once the platform's own body has occupied it. An invalid return (NaN:
 dropped, too near) is no evidence. The map's points still decide clearance; this decides where
 the unknown begins.
 
 The grid covers the scored region's footprint, from one metre below the box of interest to the
 flyer's ceiling above it. Each frame carves along its rays (a ray sampled every 0.8 voxel,
-stopping a voxel short of its return), as the mapper's own grid does.
+stopping a voxel's half-diagonal short of its return), as the mapper's own grid does.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ class FreeSpace:
         self.free = np.zeros(self.shape, dtype=bool)
         self.min_range_m, self.max_range_m = min_range_m, max_range_m
         self._lo = tuple(float(v) for v in self.lo)
-        self._margin = voxel_m * math.sqrt(3) / 2  # the ray must pass the whole voxel
+        self._margin = voxel_m * math.sqrt(3) / 2  # a voxel's half-diagonal short of the return
 
     def add_frame(self, T_map_camera: np.ndarray, k: CameraIntrinsics, depth: np.ndarray
                   ) -> None:

@@ -162,8 +162,10 @@ class MapperConfig:
     checkpoint: str = ""
     """Occupancy model weights. Empty: the checkpoint shipped in the package."""
     precision: str = "bfloat16"
-    """The model's arithmetic: bfloat16 (1.8 times faster on the 2-core machine; about 0.1% of
-    the window's voxels land on the other side of 0.5) or float32 (the trained model's own)."""
+    """The model's arithmetic: bfloat16 (1.7 to 1.8 times faster on the 2-core machine, whose
+    CPU has native bfloat16; about one covered voxel in 8000 lands on the other side of 0.5)
+    or float32 (the trained model's own arithmetic; use it on a CPU without native
+    bfloat16, where bfloat16 is slower)."""
 
 
 @dataclass
