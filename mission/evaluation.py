@@ -3,9 +3,9 @@ stuck, and how oracle false positives steered the planner's decision. Evaluation
 here reaches a module.
 
 - **Collision class.** A collision with the true scene is a *planner fault* when the map the
-  planner was given held the geometry that was hit as an obstacle: a map point within
-  ``PlannerConfig.obstacle_voxel_m`` (the edge of the box the rover's collision model makes of
-  each point; 0.15 m) of the contact point that the planner's collision model counts as an
+  planner was given held the geometry that was hit as an obstacle: a map point within the
+  margin the planner keeps from map points (:func:`fault_tolerance_m`: 0.2 m for the flyer,
+  0.15 m for the rover) of the contact point that the planner's collision model counts as an
   obstacle (the flyer: any map point; the rover: a point standing in its body's height band
   over the local ground, not ground). Otherwise it is *unseen geometry*: the map lacked it, or
   showed it as ground (a predicted ground voxel where a rock stands). Every executed motion is
@@ -45,6 +45,13 @@ PLANNER_FAULT = "planner-fault"
 UNSEEN = "unseen-geometry"
 
 
+def fault_tolerance_m(cfg: MissionConfig) -> float:
+    """How near the contact an obstacle of the map must lie for a planner fault: the margin
+    the planner keeps from map points (the flyer's sphere margin; the rover's obstacle box
+    half-edge, 0.075 m, plus its body margin, 0.1 m, rounded to one obstacle voxel, 0.15 m)."""
+    return cfg.planner.flyer_margin_m if cfg.platform == "flyer" else cfg.planner.obstacle_voxel_m
+
+
 def collision_class(report: ExecutionReport, planner_map: PlannerMap, cfg: MissionConfig,
                     T_map_base: Pose) -> str | None:
     """:data:`PLANNER_FAULT`, :data:`UNSEEN` or None (no collision); see the module
@@ -65,7 +72,7 @@ def collision_class(report: ExecutionReport, planner_map: PlannerMap, cfg: Missi
     if len(points) == 0:
         return UNSEEN
     d, _ = kdtree(points).query(np.asarray(report.contact),
-                                distance_upper_bound=cfg.planner.obstacle_voxel_m)
+                                distance_upper_bound=fault_tolerance_m(cfg))
     return PLANNER_FAULT if np.isfinite(d) else UNSEEN
 
 

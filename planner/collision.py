@@ -296,7 +296,7 @@ class FlyerCollisionModel:
     """
 
     def __init__(self, points_map: np.ndarray, flyer: FlyerConfig, ground: OccupancyCollisionModel,
-                 margin_m: float = 0.1, free: FreeSpace | None = None) -> None:
+                 margin_m: float = 0.2, free: FreeSpace | None = None) -> None:
         """``free``: the known free space; with it, the sphere's centre must lie in it."""
         self.cfg = flyer
         self.ground = ground

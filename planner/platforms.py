@@ -247,7 +247,8 @@ class FlyerModel(MotionModel):
         super().__init__(cfg, points, T_map_base, None if predicted is None else predicted[keep])
         solid = points if contacts is None or not len(contacts) else np.vstack(
             [points, contacts]).astype(np.float32)
-        self.sphere = FlyerCollisionModel(solid, cfg.flyer, self.ground, free=free)
+        self.sphere = FlyerCollisionModel(solid, cfg.flyer, self.ground,
+                                          margin_m=cfg.planner.flyer_margin_m, free=free)
 
     def _fallback_ground(self, T: Pose) -> float:
         return float(T.position[2]) - self.cfg.flyer.altitude_m

@@ -237,6 +237,10 @@ class PlannerConfig:
     flyer has been (planner/freespace.py); unknown is not free."""
     free_voxel_m: float = 0.25
     """Voxel of the flyer's known free space."""
+    flyer_margin_m: float = 0.2
+    """The flyer keeps its sphere this far from every map point. The maps sample surfaces
+    about a voxel apart (0.15 m), so an edge can lie 0.2 m from its nearest sample: with a
+    0.1 m margin the flyer clipped a slab's corner under ground-truth occupancy."""
     ground_cell_m: float = 0.5
     """Cell of the ground-height grid the collision model derives from the map."""
     obstacle_voxel_m: float = 0.15
@@ -380,6 +384,7 @@ def check_values(cfg: MissionConfig) -> None:
             ("--planner.gain-resolution", cfg.planner.gain_resolution),
             ("--planner.segment-check-m", cfg.planner.segment_check_m),
             ("--planner.free-voxel-m", cfg.planner.free_voxel_m),
+            ("--planner.flyer-margin-m", cfg.planner.flyer_margin_m),
             ("--rover.check-spacing-m", cfg.rover.check_spacing_m),
             ("--sensor.min-range-m", cfg.sensor.min_range_m)):
         if not value > 0:
