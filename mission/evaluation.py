@@ -67,7 +67,6 @@ def collision_class(report: ExecutionReport, planner_map: PlannerMap, cfg: Missi
         # What the rover's collision model counts as an obstacle (not the ground it reads).
         model = motion_model(cfg, points, T_map_base,
                              predicted=planner_map.points["source"] == Source.PREDICTED)
-        model.ground.obstacle_points  # noqa: B018 (computes obstacle_xyz)
         points = model.ground.obstacle_xyz
     if len(points) == 0:
         return UNSEEN

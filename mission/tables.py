@@ -429,8 +429,9 @@ def failure_modes(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, d
         lines.append(f"| {LABELS.get(c, c)} | {len(runs)} | " + " | ".join(cells) + " |")
     notes = ["", "Totals over every run of the condition (all starts and repetitions), with the "
              "runs that had any in brackets. Collisions, all: `collisions`; planner fault "
-             "(the map held an obstacle within the planner's margin of the contact) and unseen geometry "
-             "(it did not): `collisions_planner_fault`, `collisions_unseen`; stuck steps "
+             "(the map held an obstacle within the planner's margin of the contact) and "
+             "unseen geometry (it did not): `collisions_planner_fault`, `collisions_unseen`; "
+             "stuck steps "
              "(under 0.5 m of net progress over the last 10 steps): `stuck_steps`. "
              "Min clearance: the median over runs of each run's `min_clearance_m`. FP gain "
              "share: per step, the share of the chosen viewpoint's rendered gain that came "

@@ -86,6 +86,7 @@ class OccupancyCollisionModel:
         self._plane: np.ndarray | None = None
         self._inside = (p[inside], np.c_[row[inside], col[inside]])
         self._obstacles: np.ndarray | None = None
+        self._map_obstacle_cache: tuple[np.ndarray, np.ndarray] | None = None
         self._edge = obstacle_voxel_m
         self._manager: fcl.DynamicAABBTreeCollisionManager | None = None  # built on first use
         # The body, widened by BODY_MARGIN_M on every side, above and below too: the map
@@ -113,18 +114,29 @@ class OccupancyCollisionModel:
         the rover's body tilts with the ground it stands on. Computed on first use (the
         flyer's checks never need it)."""
         if self._obstacles is None:
-            pts, ij = self._inside
-            h = pts[:, 2] - self._ground_plane(pts[:, :2], ij)
-            keep = ((h > self.rover.clearance_m - BODY_MARGIN_M)
-                    & (h < self.rover.body_top_m + BODY_MARGIN_M))
-            self._obstacles = np.c_[pts[keep, :2], h[keep]]
-            self.obstacle_xyz = pts[keep]
-            """The same obstacle points as the map has them (x, y, z)."""
+            pts, h = self._map_obstacles()
+            self._obstacles = np.c_[pts[:, :2], h]
             if len(self._contacts):  # in the middle of the body's band
                 mid = (self.rover.clearance_m + self.rover.body_top_m) / 2
                 self._obstacles = np.vstack([self._obstacles, np.c_[
                     self._contacts[:, :2], np.full(len(self._contacts), mid)]])
         return self._obstacles
+
+    @property
+    def obstacle_xyz(self) -> np.ndarray:
+        """(M', 3) the map's obstacle points as the map has them (x, y, z); contacts aside."""
+        return self._map_obstacles()[0]
+
+    def _map_obstacles(self) -> tuple[np.ndarray, np.ndarray]:
+        """The map points standing in the body's height band over their local ground plane,
+        and those heights."""
+        if self._map_obstacle_cache is None:
+            pts, ij = self._inside
+            h = pts[:, 2] - self._ground_plane(pts[:, :2], ij)
+            keep = ((h > self.rover.clearance_m - BODY_MARGIN_M)
+                    & (h < self.rover.body_top_m + BODY_MARGIN_M))
+            self._map_obstacle_cache = (pts[keep], h[keep])
+        return self._map_obstacle_cache
 
     def _build_manager(self) -> fcl.DynamicAABBTreeCollisionManager:
         """The FCL broad phase over the obstacle points (built only when the body is checked:
