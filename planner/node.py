@@ -11,6 +11,7 @@ import numpy as np
 
 from planner.freespace import FreeSpace
 from planner.planner import make_planner
+from planner.platforms import flyer_altitudes
 from rovergate.config import MissionConfig
 from rovergate.graph import MODULES, Module
 from rovergate.module import Ask, LogicDefaults, StepOutput
@@ -34,8 +35,9 @@ class PlannerNode(LogicDefaults):
         """Where the platform touched the scene so far (its bumper): obstacles from now on."""
         self.free = None
         if cfg.platform == "flyer" and cfg.planner.known_free_only:
-            b, f, s = cfg.scene.bounds_m, cfg.flyer, cfg.sensor
-            self.free = FreeSpace((b[0], b[1], b[2] - 1.0, b[3], b[4], b[5] + f.max_altitude_m),
+            b, s = cfg.scene.bounds_m, cfg.sensor
+            lo, hi = flyer_altitudes(cfg)
+            self.free = FreeSpace((b[0], b[1], lo, b[3], b[4], hi),
                                   cfg.planner.free_voxel_m, s.min_range_m, s.max_range_m)
 
     def restore(self, step: int, inputs: dict[str, Any]) -> None:

@@ -11,7 +11,9 @@ is valid, at most ``segment_check_m`` apart (OMPL's motion check at the same res
 current state itself is not judged (the platform is already there, and the map may have grown
 around it). A platform whose place the map now calls blocked first escapes it (:meth:`escape`):
 a straight motion of at most ``ESCAPE_M`` along which the true body (no margin) touches no map
-point and moves away from the nearest one, ending in a valid state; planning starts there.
+point and moves away from the nearest one, ending in a valid state; planning starts there. A
+flyer that the map leaves free but that is outside its altitude band (the ground estimated
+under it moved) returns to the band vertically, each state of the way free with the margin.
 With no escape it turns in place if the turn is free, or stays. The platform never leaves the scored
 region: its states keep its whole body (its reach) inside the footprint of the box of
 interest, the region of every map it is given (:func:`rovergate.geometry.in_region`).
@@ -38,6 +40,9 @@ TURN_CHECK_RAD = np.radians(5.0)
 ESCAPE_M = 0.6
 #: Spacing of the escape's checks.
 ESCAPE_STEP_M = 0.05
+#: How far inside the altitude band a flyer that left it returns (the band's edges move with
+#: the ground the map estimates, by a few centimetres a step).
+BAND_INSET_M = 0.1
 
 
 class MotionModel(abc.ABC):
@@ -143,6 +148,13 @@ class MotionModel(abc.ABC):
     def length(states: list[State]) -> float:
         p = np.array([s[: 3 if len(s) == 5 else 2] for s in states])
         return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+
+
+def flyer_altitudes(cfg: MissionConfig) -> tuple[float, float]:
+    """The heights the flyer may plan through: from 1 m below the scene's bounds to its
+    highest altitude above them (its states, and the free space the planner keeps)."""
+    b = cfg.scene.bounds_m
+    return b[2] - 1.0, b[5] + cfg.flyer.max_altitude_m
 
 
 def _inside(state, box: tuple[float, float, float, float]) -> bool:
@@ -287,10 +299,9 @@ class FlyerModel(MotionModel):
         return self.sphere.is_free(*s[:3])
 
     def _box(self) -> tuple[float, ...]:
-        b, f = self.cfg.scene.bounds_m, self.cfg.flyer
+        lo, hi = flyer_altitudes(self.cfg)
         x0, y0, x1, y1 = self.inner_box()
-        return (x0, y0, min(b[2] - 1.0, self.current[2]), x1, y1,
-                max(b[5] + f.max_altitude_m, self.current[2]))
+        return (x0, y0, min(lo, self.current[2]), x1, y1, max(hi, self.current[2]))
 
     def plan(self, start: State, goal: State, seed: int) -> list[State] | None:
         box = self._box()
@@ -317,10 +328,19 @@ class FlyerModel(MotionModel):
         return (*s[:3], s[3] + np.pi / 2, 0.0)
 
     def escape(self) -> State | None:
-        """Away from the nearest map point, or up or down into the altitude band: every
-        state of the way keeps the true sphere (no margin) off the map, moves no nearer to its
-        nearest point and stays in known free space; the end is valid."""
+        """Back into the altitude band, or away from the nearest map point.
+
+        A state the map leaves free but that lies outside the altitude band (the ground under
+        it, as the map now estimates it, moved: a prediction filled a crater floor below a
+        flyer that was in the band when it got there) returns to the band vertically, to
+        ``BAND_INSET_M`` inside its nearer edge and at most one step's motion budget: every
+        state of the way is free of the map with the margin and in known free space.
+        Otherwise away from the nearest map point, or up or down: every state of the way
+        keeps the true sphere (no margin) off the map, moves no nearer to its nearest point
+        and stays in known free space; the end is valid."""
         p0 = np.asarray(self.current[:3], dtype=np.float64)
+        if self.sphere.is_free(*p0, band=False):
+            return self._back_into_band(p0)
         directions = []
         near = self.sphere.nearest(p0)
         if near is not None and np.linalg.norm(p0 - near) > 1e-6:
@@ -341,6 +361,19 @@ class FlyerModel(MotionModel):
                 if self.is_free(s):
                     return s
         return None
+
+    def _back_into_band(self, p0: np.ndarray) -> State | None:
+        lo, hi = self.sphere.altitude_band(p0[0], p0[1])
+        target = min(max(p0[2], lo + BAND_INSET_M), hi - BAND_INSET_M)
+        if abs(target - p0[2]) > self.cfg.planner.max_step_m:
+            return None
+        n = max(int(np.ceil(abs(target - p0[2]) / ESCAPE_STEP_M)), 1)
+        way = np.repeat(p0[None], n, axis=0)
+        way[:, 2] = np.linspace(p0[2], target, n + 1)[1:]
+        if not self.sphere.free_many(way, band=False).all():
+            return None
+        s = (*(float(v) for v in way[-1]), *self.current[3:])
+        return s if self.is_free(s) else None
 
     def is_free_turn(self, s: State) -> bool:
         return True  # turning in place moves no part of the sphere (nor leaves the place)

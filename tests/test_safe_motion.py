@@ -104,6 +104,26 @@ def test_a_flyer_the_map_now_blocks_leaves_only_by_a_checked_escape():
     assert path is not None and all(model.is_free(s) for s in path)
 
 
+def test_a_flyer_above_its_altitude_band_descends_back_into_it():
+    # The flyer got to 7 m over a ground the map then placed lower (a prediction filled the
+    # floor below it): nothing is near it, but it is above the band (6 m over the ground).
+    # Before the return every motion's first states were out of the band: it only turned.
+    cfg = mission("flyer")
+    model = FlyerModel(cfg, ground(), Pose.from_xyz_yaw_pitch(0.0, 0.0, 7.0, 0.0, 0.0))
+    start = model.current
+    assert not model.is_free(start) and model.sphere.is_free(*start[:3], band=False)
+    assert not model.segment_free(start, (2.0, 0.0, 5.0, 0.0, 0.0))
+    model.leave_blocked_start()
+    assert model.prefix == [start] and model.is_free(model.current)
+    assert model.current[:2] == start[:2] and 5.5 < model.current[2] < 6.0
+    assert model.segment_free(model.current, (2.0, 0.0, 5.0, 0.0, 0.0))
+    # A map point below it, within the margin of the way down: it may not descend past it.
+    pts = np.vstack([ground(), [[0.0, 0.3, 6.3]]]).astype(np.float32)
+    blocked = FlyerModel(cfg, pts, Pose.from_xyz_yaw_pitch(0.0, 0.0, 7.0, 0.0, 0.0))
+    blocked.leave_blocked_start()
+    assert blocked.prefix == [] and blocked.current == start
+
+
 def test_a_rover_the_map_now_blocks_backs_out_with_its_true_body():
     cfg = mission("rover")
     # A rock just inside the checked body's margin ahead of the rover, clear of the body.
