@@ -21,6 +21,7 @@ from mission.tables import (
     paper_selection,
     per_start_effects,
     placebo_effects,
+    robustness,
     sign_test,
     signflip_p,
     strata,
@@ -245,6 +246,27 @@ def test_failure_modes_total_the_new_fields_and_dash_what_is_missing():
     assert fig["obs"]["collisions_unseen"] is None
 
 
+def test_robustness_drops_every_pair_with_a_stuck_or_colliding_run():
+    rows = (runs_of("a", "learned", [0.5, 0.6, 0.7])
+            + runs_of("a", "gated", [0.6, 0.7, 0.8])            # +0.1 in every pair
+            + [run("b", "learned", 0, 0.2, stuck_steps=40),       # stuck: its pair goes
+               run("b", "learned", 1, 0.8), run("b", "learned", 2, 0.8, collisions=0),
+               run("b", "gated", 0, 0.9), run("b", "gated", 1, 0.8),
+               run("b", "gated", 2, 0.7, collisions=2)]          # collided: its pair goes
+            + [run("c", "learned", 0, 0.3, stuck_steps=5), run("c", "gated", 0, 0.9)])
+    text, fig = robustness(rows, ("learned", "gated"), resamples=200)
+    g = fig["gated"]
+    # Every pair: a +0.1, b mean(+0.7, 0, -0.1), c +0.6; clean: a +0.1, b 0 (its r1 alone).
+    assert g["every_pair"]["mean"] == pytest.approx((0.1 + 0.2 + 0.6) / 3)
+    assert g["clean_pairs"]["mean"] == pytest.approx((0.1 + 0.0) / 2)
+    assert g["clean_pairs"]["n"] == 2 and (g["pairs"], g["pairs_kept"]) == (7, 4)
+    assert "| 2 of 3 | 4 of 7 |" in text
+    # The placebo keeps the clean learned runs: a r1 − mean(r0, r2) = 0; b (r1, r2) 0; c none.
+    p = fig["placebo"]
+    assert p["clean_pairs"]["mean"] == pytest.approx(0.0) and p["clean_pairs"]["n"] == 2
+    assert (p["learned_runs"], p["learned_runs_kept"]) == (7, 5)
+
+
 # ----------------------------------------------------------------------------- write_tables
 
 def _metrics(seed: int, coverage: list[float], new_fields: bool) -> dict:
@@ -297,4 +319,6 @@ def test_write_tables_writes_the_new_columns_and_figures(tmp_path: Path):
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
     table = (tmp_path / "table1.md").read_text()
     assert PLACEBO_LABEL in table and "## Failure modes per condition" in table
+    assert "## Without the runs that were stuck or collided" in table
+    assert summary["robustness"]["gated"]["pairs"] == 6
     assert "Bit-identical gated runs" in (tmp_path / "table2.md").read_text()
