@@ -13,7 +13,8 @@ around it). A platform whose place the map now calls blocked first escapes it (:
 a straight motion of at most ``ESCAPE_M`` along which the true body (no margin) touches no map
 point and moves away from the nearest one, ending in a valid state; planning starts there. A
 flyer that the map leaves free but that is outside its altitude band (the ground estimated
-under it moved) returns to the band vertically, each state of the way free with the margin.
+under it moved) returns towards the band vertically, by at most one step's motion budget, each
+state of the way free with the margin and in known free space.
 With no escape it turns in place if the turn is free, or stays. The platform never leaves the scored
 region: its states keep its whole body (its reach) inside the footprint of the box of
 interest, the region of every map it is given (:func:`rovergate.geometry.in_region`).
@@ -332,15 +333,19 @@ class FlyerModel(MotionModel):
 
         A state the map leaves free but that lies outside the altitude band (the ground under
         it, as the map now estimates it, moved: a prediction filled a crater floor below a
-        flyer that was in the band when it got there) returns to the band vertically, to
-        ``BAND_INSET_M`` inside its nearer edge and at most one step's motion budget: every
-        state of the way is free of the map with the margin and in known free space.
-        Otherwise away from the nearest map point, or up or down: every state of the way
-        keeps the true sphere (no margin) off the map, moves no nearer to its nearest point
-        and stays in known free space; the end is valid."""
+        flyer that was in the band when it got there) returns towards the band vertically
+        (:meth:`_back_into_band`): every state of the way is free of the map with the margin
+        and in known free space; the way is at most one step's motion budget, so a drop deeper
+        than that takes several steps (the end is then still outside the band, and the step
+        is spent on the way there). Otherwise, or if that way is blocked: away from the
+        nearest map point, or up or down, at most ``ESCAPE_M``: every state of the way keeps
+        the true sphere (no margin) off the map, moves no nearer to its nearest point and
+        stays in known free space; the end is valid."""
         p0 = np.asarray(self.current[:3], dtype=np.float64)
         if self.sphere.is_free(*p0, band=False):
-            return self._back_into_band(p0)
+            end = self._back_into_band(p0)
+            if end is not None:
+                return end
         directions = []
         near = self.sphere.nearest(p0)
         if near is not None and np.linalg.norm(p0 - near) > 1e-6:
@@ -363,17 +368,23 @@ class FlyerModel(MotionModel):
         return None
 
     def _back_into_band(self, p0: np.ndarray) -> State | None:
+        """Vertically towards ``BAND_INSET_M`` inside the band's nearer edge (its middle if the
+        band is thinner), at most one step's motion budget: a deeper drop is made up over
+        several steps. None if a state of the way is not free of the map (with the margin,
+        band aside) or not in known free space."""
         lo, hi = self.sphere.altitude_band(p0[0], p0[1])
-        target = min(max(p0[2], lo + BAND_INSET_M), hi - BAND_INSET_M)
-        if abs(target - p0[2]) > self.cfg.planner.max_step_m:
-            return None
+        if hi - lo < 2 * BAND_INSET_M:
+            target = (lo + hi) / 2
+        else:
+            target = min(max(p0[2], lo + BAND_INSET_M), hi - BAND_INSET_M)
+        budget = self.cfg.planner.max_step_m
+        target = p0[2] + float(np.clip(target - p0[2], -budget, budget))
         n = max(int(np.ceil(abs(target - p0[2]) / ESCAPE_STEP_M)), 1)
         way = np.repeat(p0[None], n, axis=0)
         way[:, 2] = np.linspace(p0[2], target, n + 1)[1:]
         if not self.sphere.free_many(way, band=False).all():
             return None
-        s = (*(float(v) for v in way[-1]), *self.current[3:])
-        return s if self.is_free(s) else None
+        return (*(float(v) for v in way[-1]), *self.current[3:])
 
     def is_free_turn(self, s: State) -> bool:
         return True  # turning in place moves no part of the sphere (nor leaves the place)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mission.evaluation import PLANNER_FAULT, UNSEEN, StepEvaluator, collision_class, stuck_flags
 from planner.freespace import FreeSpace
@@ -118,10 +119,21 @@ def test_a_flyer_above_its_altitude_band_descends_back_into_it():
     assert model.current[:2] == start[:2] and 5.5 < model.current[2] < 6.0
     assert model.segment_free(model.current, (2.0, 0.0, 5.0, 0.0, 0.0))
     # A map point below it, within the margin of the way down: it may not descend past it.
-    pts = np.vstack([ground(), [[0.0, 0.3, 6.3]]]).astype(np.float32)
+    pts = np.vstack([ground(), [[0.0, 0.3, 6.5]]]).astype(np.float32)
     blocked = FlyerModel(cfg, pts, Pose.from_xyz_yaw_pitch(0.0, 0.0, 7.0, 0.0, 0.0))
     blocked.leave_blocked_start()
     assert blocked.prefix == [] and blocked.current == start
+    # Nor through space no camera ray has shown free.
+    free = FreeSpace((-10, -10, -1, 10, 10, 12), 0.25, 0.3, 20.0)
+    free.add_body(np.array([0.0, 0.0, 7.0]), 0.3)
+    unknown = FlyerModel(cfg, ground(), Pose.from_xyz_yaw_pitch(0.0, 0.0, 7.0, 0.0, 0.0),
+                         free=free)
+    unknown.leave_blocked_start()
+    assert unknown.prefix == []
+    # A drop deeper than one step's budget (3 m) is made up over several steps.
+    high = FlyerModel(cfg, ground(), Pose.from_xyz_yaw_pitch(0.0, 0.0, 11.0, 0.0, 0.0))
+    high.leave_blocked_start()
+    assert high.prefix and high.current[2] == pytest.approx(8.0)
 
 
 def test_a_rover_the_map_now_blocks_backs_out_with_its_true_body():

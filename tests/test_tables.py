@@ -250,10 +250,13 @@ def test_robustness_drops_every_pair_with_a_stuck_or_colliding_run():
     rows = (runs_of("a", "learned", [0.5, 0.6, 0.7])
             + runs_of("a", "gated", [0.6, 0.7, 0.8])            # +0.1 in every pair
             + [run("b", "learned", 0, 0.2, stuck_steps=40),       # stuck: its pair goes
-               run("b", "learned", 1, 0.8), run("b", "learned", 2, 0.8, collisions=0),
+               run("b", "learned", 1, 0.8), run("b", "learned", 2, 0.8),
                run("b", "gated", 0, 0.9), run("b", "gated", 1, 0.8),
                run("b", "gated", 2, 0.7, collisions=2)]          # collided: its pair goes
             + [run("c", "learned", 0, 0.3, stuck_steps=5), run("c", "gated", 0, 0.9)])
+    for r in rows:
+        r.setdefault("stuck_steps", 0)
+        r.setdefault("collisions", 0)
     text, fig = robustness(rows, ("learned", "gated"), resamples=200)
     g = fig["gated"]
     # Every pair: a +0.1, b mean(+0.7, 0, -0.1), c +0.6; clean: a +0.1, b 0 (its r1 alone).
@@ -265,6 +268,10 @@ def test_robustness_drops_every_pair_with_a_stuck_or_colliding_run():
     p = fig["placebo"]
     assert p["clean_pairs"]["mean"] == pytest.approx(0.0) and p["clean_pairs"]["n"] == 2
     assert (p["learned_runs"], p["learned_runs_kept"]) == (7, 5)
+    # Runs that lack the counts (written before they existed) are not taken as clean.
+    del rows[0]["stuck_steps"]
+    text, fig = robustness(rows, ("learned", "gated"), resamples=200)
+    assert fig == {} and text.startswith("Not computed")
 
 
 # ----------------------------------------------------------------------------- write_tables
@@ -320,5 +327,5 @@ def test_write_tables_writes_the_new_columns_and_figures(tmp_path: Path):
     table = (tmp_path / "table1.md").read_text()
     assert PLACEBO_LABEL in table and "## Failure modes per condition" in table
     assert "## Without the runs that were stuck or collided" in table
-    assert summary["robustness"]["gated"]["pairs"] == 6
+    assert summary["robustness"] == {} and "Not computed" in table  # half lack stuck_steps
     assert "Bit-identical gated runs" in (tmp_path / "table2.md").read_text()
