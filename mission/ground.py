@@ -14,7 +14,8 @@ input, one per line)::
     pause | resume | abort
     set gate.k=3 [planner.n_candidates=16 ...]
     condition gated
-    planner frontier | planner cmd python my_planner.py --flag
+    planner beam | planner frontier   (a built-in planner, or a program the mission named
+                                       at launch with --planner.programs; never a command line)
 
 A command travels only in a contact window and reaches the rover one light time later; the
 rover executes it at the next step boundary and downlinks a ``command_ack``.
@@ -145,9 +146,11 @@ def parse_command(line: str, command_id: int) -> GroundCommand:
         raise ValueError(f"{verb} takes no arguments")
     if verb == "set" and (not args or not all("=" in a for a in args)):
         raise ValueError("set takes section.field=value pairs, e.g. set gate.k=3")
-    if verb in ("condition", "planner") and not args:
-        raise ValueError(f"{verb} needs a name, e.g. {verb} "
-                         f"{'gated' if verb == 'condition' else 'frontier'}")
+    if verb in ("condition", "planner") and len(args) != 1:
+        raise ValueError(f"{verb} takes one name, e.g. {verb} "
+                         f"{'gated' if verb == 'condition' else 'frontier'}"
+                         + ("" if verb == "condition" else
+                            " (a built-in planner or one the mission was launched with)"))
     return GroundCommand(command_id, verb, args)
 
 

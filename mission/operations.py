@@ -7,6 +7,10 @@ executes the commands that have reached the rover; after every step it queues th
 telemetry. While paused, it keeps the link's clock running in idle steps (the rover holds
 still), so that a ``resume`` can come up in a later window.
 
+Nothing from the ground runs a program the launch did not name: ``planner NAME`` chooses a
+built-in planner or one of ``--planner.programs``, and ``set`` changes only the fields of
+:data:`IN_FLIGHT`, within their ranges.
+
 Commands that change the configuration (``set``, ``condition``, ``planner``) restart the
 modules concerned with the new configuration; they rebuild their state from the mission's
 journal, so the new setting applies from the next step on, as if it had always been set
@@ -27,17 +31,31 @@ import numpy as np
 from mission.bridge import Delivered, GroundBridge
 from mission.supervisor import RestartEvent
 from rovergate.conditions import get_condition
-from rovergate.config import MissionConfig, check_values, from_dict, to_dict
-from rovergate.errors import ConfigError, UnknownNameError
+from rovergate.config import MissionConfig, check_values, from_dict, planner_programs, to_dict
+from rovergate.errors import ConfigError, ReconfigurationFailed, UnknownNameError
 from rovergate.graph import readers
 from rovergate.module import STOP
 from rovergate.types import CommandAck, MissionStatus, Pose
 
 log = logging.getLogger("rovergate.operations")
 
-#: Config sections the ground may change in flight; the modules built from them restart
-#: (:func:`rovergate.graph.readers`).
-SETTABLE = ("gate", "planner")
+#: What ``set`` may change in flight: ``section.field`` -> (least, most). Nothing else can be
+#: set from the ground (not a planner's command line, not a safety margin, not the sensor);
+#: a value of another type, out of range, NaN or infinite is refused. The modules built from
+#: the section restart (:func:`rovergate.graph.readers`).
+IN_FLIGHT: dict[str, tuple[float, float]] = {
+    "gate.k": (1, 100),
+    "gate.epsilon_frac": (0.001, 0.5),
+    "gate.view_tolerance_m": (0.01, 5.0),
+    "planner.n_candidates": (1, 256),
+    "planner.beam_width": (1, 16),
+    "planner.beam_depth": (1, 6),
+    "planner.beam_branch": (1, 64),
+    "planner.max_step_m": (0.1, 10.0),
+    "planner.max_attempts": (1, 64),
+    "planner.observed_min_views": (1, 50),
+    "planner.gain_voxel_m": (0.05, 2.0),
+}
 
 
 class CommandError(ValueError):
@@ -45,16 +63,18 @@ class CommandError(ValueError):
 
 
 def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig, set[str]]:
-    """``section.field=value`` pairs applied to a copy of ``cfg``; returns it and the modules
-    to restart. Values are read as JSON where they parse (3, 0.05, true), else as text."""
+    """``section.field=value`` pairs (fields of :data:`IN_FLIGHT`) applied to a copy of
+    ``cfg``; returns it and the modules to restart. Values are read as JSON numbers; an
+    integer field takes only an integer, a real one either."""
     data = to_dict(cfg)
     modules: set[str] = set()
     for pair in pairs:
         key, _, raw = pair.partition("=")
-        section, _, name = key.strip().partition(".")
-        if section not in SETTABLE or name not in data[section]:
-            raise CommandError(f"cannot set {key!r} in flight; settable: " + ", ".join(
-                f"{s}.<field>" for s in SETTABLE))
+        key = key.strip()
+        if key not in IN_FLIGHT:
+            raise CommandError(f"cannot set {key!r} in flight; settable: "
+                               + ", ".join(IN_FLIGHT))
+        section, _, name = key.partition(".")
         try:
             value: Any = json.loads(raw)
         except ValueError:
@@ -63,7 +83,12 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
         if isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if type(value) is not type(old):
-            raise CommandError(f"{key} takes a {type(old).__name__}, got {raw!r}")
+            raise CommandError(f"{key} takes a{'n' if isinstance(old, int) else ''} "
+                               f"{'integer' if isinstance(old, int) else 'number'}, "
+                               f"got {raw!r}")
+        least, most = IN_FLIGHT[key]
+        if not least <= value <= most:  # NaN fails too
+            raise CommandError(f"{key} must be between {least} and {most}, got {raw!r}")
         data[section][name] = value
         modules.update(readers(section))
     new = from_dict(MissionConfig, data)
@@ -72,6 +97,24 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
     except ConfigError as exc:
         raise CommandError(str(exc)) from None
     return new, modules
+
+
+def choose_planner(cfg: MissionConfig, name: str) -> MissionConfig:
+    """``planner NAME`` from the ground: a built-in planner, or a program fixed at launch
+    (``--planner.programs``). The ground never sends a command line."""
+    from planner.planner import PLANNERS
+    programs = planner_programs(cfg.planner)
+    if name in ("auto", *PLANNERS):
+        planner = dataclasses.replace(cfg.planner, name=name, command="")
+    elif name in programs:
+        planner = dataclasses.replace(cfg.planner, command=programs[name])
+    else:
+        why = ("the ground cannot send a command line; " if name == "cmd" else
+               f"unknown planner {name!r}; ")
+        raise CommandError(why + "choose one of: " + ", ".join(["auto", *PLANNERS, *programs])
+                           + (" (programs are fixed at launch: --planner.programs "
+                              "NAME=COMMAND)"))
+    return dataclasses.replace(cfg, planner=planner)
 
 
 class MissionControl(Protocol):
@@ -99,7 +142,9 @@ class MissionControl(Protocol):
         ...
 
     def reconfigure(self, cfg: MissionConfig, modules: list[str], step: int) -> None:
-        """Restart ``modules`` with ``cfg`` at the boundary before ``step``."""
+        """Restart ``modules`` with ``cfg`` at the boundary before ``step``; if they do not
+        come up, restart them with the previous configuration and raise
+        :class:`ReconfigurationFailed`."""
         ...
 
 
@@ -194,21 +239,18 @@ class Operations:
             cfg = dataclasses.replace(self.cfg, condition=args[0])
             modules = set(readers("condition"))
         elif verb == "planner":
-            if args[0] == "cmd":
-                if len(args) < 2:
-                    raise CommandError("planner cmd needs a command line")
-                planner = dataclasses.replace(self.cfg.planner, command=" ".join(args[1:]))
-            else:
-                from planner.planner import PLANNERS
-                if args[0] not in ("auto", *PLANNERS):
-                    raise CommandError(f"unknown planner {args[0]!r}; one of: auto, "
-                                       f"{', '.join(PLANNERS)}, or cmd <command line>")
-                planner = dataclasses.replace(self.cfg.planner, name=args[0], command="")
-            cfg, modules = dataclasses.replace(self.cfg, planner=planner), set(readers("planner"))
+            if len(args) != 1:
+                raise CommandError("planner takes one name (e.g. planner beam); the ground "
+                                   "cannot send a command line")
+            cfg, modules = choose_planner(self.cfg, args[0]), set(readers("planner"))
         else:
             raise CommandError(f"unknown verb {verb!r}")
         t0 = time.monotonic()
-        self.control.reconfigure(cfg, sorted(modules), step)
+        try:
+            self.control.reconfigure(cfg, sorted(modules), step)
+        except ReconfigurationFailed as exc:
+            self.bridge.event(step, "reconfiguration-rolled-back", str(exc))
+            raise CommandError(str(exc)) from None
         seconds = time.monotonic() - t0
         self.reconfigurations.append({"step": step, "verb": verb, "args": args,
                                       "modules": sorted(modules), "seconds": seconds})

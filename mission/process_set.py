@@ -37,7 +37,7 @@ from mission.inbox import Inbox
 from mission.journal import Journal, JournalServer
 from mission.supervisor import ProcessSupervisor, RestartEvent
 from rovergate.config import MissionConfig, save_config
-from rovergate.errors import ConfigError, MissionFailed
+from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
 from rovergate.graph import LAUNCHED, MODULES, stage_module
 from rovergate.keys import Keys
 from rovergate.messages import MessageError, prepare
@@ -52,6 +52,15 @@ log = logging.getLogger("rovergate.mission")
 _MISSION_INPUTS = {i.topic: name for name, i in MODULES["mission"].inputs.items()}
 #: Which module's last output each topic is (a restarted module is back once it comes).
 _PROGRESS = {MODULES[m].progress: m for m in LAUNCHED}
+
+
+def program_argv(command: str) -> list[str]:
+    """A planner program's command line as argv; ``python`` or ``python3`` as its first word
+    is the mission's own interpreter, so the program sees the mission's environment."""
+    argv = shlex.split(command)
+    if argv and argv[0] in ("python", "python3"):
+        argv[0] = sys.executable
+    return argv
 
 
 class ProcessSetTransport:
@@ -131,7 +140,24 @@ class ProcessSetTransport:
 
     def reconfigure(self, cfg: MissionConfig, modules: list[str], step: int) -> None:
         """Restart ``modules`` with ``cfg`` at the boundary before ``step`` (every module is
-        then waiting for step ``step``'s inputs); they rebuild their state from the journal."""
+        then waiting for step ``step``'s inputs); they rebuild their state from the journal.
+        If one of them exits or shows no liveliness token within ``ready_timeout_s``, they
+        are restarted with the previous configuration and :class:`ReconfigurationFailed`
+        says why: a bad swap costs the mission a few seconds, not its life."""
+        previous = self._cfg
+        try:
+            self._restart_with(cfg, modules, step, restart=False)
+        except MissionFailed as exc:
+            why = str(exc).splitlines()[0]
+            log.warning("%s did not come up with the new configuration (%s); restarting with "
+                        "the previous one", ", ".join(modules), why)
+            self._restart_with(previous, modules, step, restart=True)
+            raise ReconfigurationFailed(
+                f"{', '.join(modules)} did not come up with the new configuration ({why}); "
+                "the previous configuration runs on") from None
+
+    def _restart_with(self, cfg: MissionConfig, modules: list[str], step: int,
+                      restart: bool) -> None:
         self._cfg = cfg
         self._configs += 1
         self.config_path = self.out / f"config.{self._configs}.json"
@@ -140,7 +166,8 @@ class ProcessSetTransport:
             self.supervisor.replace(modules, step)
         self._wait(lambda: self.supervisor.alive.issuperset(modules),
                    "the liveliness tokens of the restarted " + ", ".join(modules),
-                   cfg.ready_timeout_s)
+                   cfg.ready_timeout_s, restart=restart,
+                   exit_when="while coming up with the new configuration")
 
     # --- callbacks (Zenoh's threads) ------------------------------------------------------
 
@@ -184,7 +211,7 @@ class ProcessSetTransport:
         cfg = self._cfg
         if name == "planner" and cfg.planner.command:
             # A planner of the user's own: it gets the endpoint and the namespace.
-            return [*shlex.split(cfg.planner.command), "--connect", self.endpoint,
+            return [*program_argv(cfg.planner.command), "--connect", self.endpoint,
                     "--namespace", cfg.session.namespace]
         cmd = [sys.executable, "-m", "mission.cli", name, "--config", str(self.config_path),
                "--mode", "peer", "--connect", self.endpoint, "--listen", "tcp/127.0.0.1:0",
@@ -203,7 +230,7 @@ class ProcessSetTransport:
         return bool(dead)
 
     def _wait(self, ready: Callable[[], bool], what: str, timeout_s: float,
-              restart: bool = True) -> None:
+              restart: bool = True, exit_when: str = "before the mission started") -> None:
         deadline = time.monotonic() + timeout_s
         with self.inbox.cv:
             while not ready():
@@ -219,7 +246,7 @@ class ProcessSetTransport:
                     if self._check_processes():  # a restart gets the full time again
                         deadline = time.monotonic() + self._cfg.ready_timeout_s + timeout_s
                 else:
-                    self.supervisor.fail_on_exit()
+                    self.supervisor.fail_on_exit(exit_when)
 
     # --- Transport ------------------------------------------------------------------------
 

@@ -15,7 +15,7 @@ from mission.report import write_report
 from planner.planner import PLANNERS, planner_name
 from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.conditions import get_condition
-from rovergate.config import MissionConfig, check_values, save_config, to_dict
+from rovergate.config import MissionConfig, check_values, planner_programs, save_config, to_dict
 from rovergate.errors import ConfigError, MissionFailed, UnknownNameError
 from rovergate.geometry import check_platform
 from rovergate.logs import init_logging
@@ -36,6 +36,10 @@ def check_runnable(cfg: MissionConfig) -> None:
         raise UnknownNameError(f"unknown planner {cfg.planner.name!r}; choose one of: auto, "
                                f"{', '.join(PLANNERS)} (--planner.name)")
     check_values(cfg)
+    for name in planner_programs(cfg.planner):
+        if name in ("auto", "cmd", *PLANNERS):
+            raise ConfigError(f"--planner.programs: {name!r} is the name of a built-in "
+                              "planner; give the program another name")
     mission_checkpoint(cfg)  # a bad --mapper.prediction or checkpoint stops the mission here
     if cfg.in_process and cfg.planner.command:
         raise ConfigError("--planner.command runs a planner program, which needs the "

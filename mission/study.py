@@ -112,8 +112,9 @@ run, and what to do instead; ``{value}`` is the value given (VALUE if none)."""
 #: Sections and flags that only the process set reads: every study run is in one process, so
 #: they would have no effect.
 PROCESS_SET_ONLY: tuple[str, ...] = (
-    "contact", "planner.command", "ready-timeout-s", "step-timeout-s", "max-restarts",
-    "mode", "connect", "listen", "namespace", "multicast-scouting", "wait-for-peers")
+    "contact", "planner.command", "planner.programs", "ready-timeout-s", "step-timeout-s",
+    "max-restarts", "mode", "connect", "listen", "namespace", "multicast-scouting",
+    "wait-for-peers")
 
 
 def refuse_owned_mission_flags(argv: list[str]) -> None:

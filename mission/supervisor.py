@@ -179,14 +179,15 @@ class ProcessSupervisor:
         for name in names:
             self._respawn(name, step)
 
-    def fail_on_exit(self) -> None:
-        """Before the mission starts, a module that exits is a configuration fault: raise
-        :class:`MissionFailed` with the end of its log."""
+    def fail_on_exit(self, when: str = "before the mission started") -> None:
+        """Before the mission starts (or while modules come up with a new configuration), a
+        module that exits is a configuration fault: raise :class:`MissionFailed` with the end
+        of its log."""
         for name, p in self.procs.items():
             code = p.poll()
             if code is not None:
                 raise MissionFailed(
-                    f"module {name!r} exited with code {code} before the mission started; its "
+                    f"module {name!r} exited with code {code} {when}; its "
                     f"log is {self.logs_dir / (name + '.log')}:\n{self.tail(name)}")
 
     def shutdown(self, timeout_s: float = 30.0) -> dict[str, int | None]:

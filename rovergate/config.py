@@ -247,7 +247,12 @@ class PlannerConfig:
     """Edge of the box that each obstacle point becomes in FCL."""
     command: str = ""
     """Run this program as the planner process instead of the built-in one (the mission
-    appends --connect ENDPOINT --namespace NS; see docs/writing-a-planner.md)."""
+    appends --connect ENDPOINT --namespace NS; see docs/writing-a-planner.md). A command line
+    whose first word is python or python3 runs with the mission's own interpreter."""
+    programs: tuple[str, ...] = ()
+    """Planner programs the ground station may swap in by name, fixed at launch: NAME=COMMAND
+    entries, e.g. --planner.programs 'frontier=python examples/frontier_planner.py'. The
+    ground can only name one of these (or a built-in planner), never send a command line."""
 
 
 @dataclass
@@ -389,6 +394,7 @@ def check_values(cfg: MissionConfig) -> None:
             ("--sensor.min-range-m", cfg.sensor.min_range_m)):
         if not value > 0:
             raise ConfigError(f"{flag} must be positive, got {value}")
+    planner_programs(cfg.planner)
     if cfg.mapper.precision not in ("float32", "bfloat16"):
         raise ConfigError(f"--mapper.precision must be float32 or bfloat16, got "
                           f"{cfg.mapper.precision!r}")
@@ -398,6 +404,25 @@ def check_values(cfg: MissionConfig) -> None:
     if not 0 < cfg.sensor.vfov_deg < 180:
         raise ConfigError(f"--sensor.vfov-deg must be between 0 and 180, got "
                           f"{cfg.sensor.vfov_deg}")
+
+
+def planner_programs(planner: PlannerConfig) -> dict[str, str]:
+    """``--planner.programs`` as a name -> command line dict; a malformed or repeated entry is
+    a :class:`ConfigError` naming it (a built-in planner's name is refused by
+    :func:`mission.run.check_runnable`)."""
+    out: dict[str, str] = {}
+    for entry in planner.programs:
+        name, eq, command = entry.partition("=")
+        name, command = name.strip(), command.strip()
+        if not eq or not name or not command or not name.replace("-", "").replace(
+                "_", "").isalnum():
+            raise ConfigError(f"--planner.programs entry {entry!r} is not NAME=COMMAND (a "
+                              "name of letters, digits, - and _, then the command line)")
+        if name in out:
+            raise ConfigError(f"--planner.programs names {name!r} twice; give each program "
+                              "its own name")
+        out[name] = command
+    return out
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

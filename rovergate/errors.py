@@ -32,3 +32,8 @@ class TransportError(RovergateError):
 class MissionFailed(RovergateError):
     """A module died more often than it may be restarted, or something the mission waited for
     did not come in time."""
+
+
+class ReconfigurationFailed(RovergateError):
+    """Modules restarted with a new configuration did not come up; the previous configuration
+    runs on (the mission goes on)."""

@@ -12,14 +12,16 @@ from pathlib import Path
 
 import pytest
 import tyro
-from conftest import ROVERGATE, Mission, StatusWatcher
+from conftest import ROVERGATE, Mission, StatusWatcher, run_cli
 
 from mission.bridge import LINK_FILE
 from mission.contact import ContactPlan, ContactPlanError
 from mission.downlink import DownlinkQueue
 from mission.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
-from mission.operations import CommandError, apply_settings
-from rovergate.config import ContactConfig, MissionConfig
+from mission.operations import CommandError, apply_settings, choose_planner
+from mission.process_set import program_argv
+from mission.run import check_runnable
+from rovergate.config import ContactConfig, MissionConfig, check_values
 from rovergate.errors import ConfigError
 
 
@@ -142,15 +144,15 @@ def test_corrupt_queue_file_is_one_clear_line(tmp_path: Path):
     ("pause", "pause", []),
     ("set gate.k=3 gate.epsilon_frac=0.05", "set", ["gate.k=3", "gate.epsilon_frac=0.05"]),
     ("condition gated", "condition", ["gated"]),
-    ("planner cmd python my_planner.py --x 'a b'", "planner",
-     ["cmd", "python", "my_planner.py", "--x", "a b"]),
+    ("planner frontier", "planner", ["frontier"]),
 ])
 def test_ground_parses_commands(line, verb, args):
     c = parse_command(line, 7)
     assert (c.id, c.verb, c.args) == (7, verb, args)
 
 
-@pytest.mark.parametrize("line", ["jump", "pause now", "set gate.k", "condition", ""])
+@pytest.mark.parametrize("line", ["jump", "pause now", "set gate.k", "condition", "",
+                                  "planner cmd python my_planner.py --x 'a b'"])
 def test_ground_refuses_malformed_commands(line):
     with pytest.raises(ValueError):
         parse_command(line, 1)
@@ -254,17 +256,65 @@ def test_ground_command_without_a_mission_is_one_line(tmp_path: Path):
 def test_settings_change_in_flight_only_where_allowed():
     cfg, modules = apply_settings(MissionConfig(), ["gate.k=3", "gate.epsilon_frac=0.05"])
     assert (cfg.gate.k, cfg.gate.epsilon_frac, modules) == (3, 0.05, {"gate"})
-    cfg, modules = apply_settings(MissionConfig(), ["planner.name=beam"])
-    assert cfg.planner.name == "beam" and modules == {"planner"}
-    with pytest.raises(CommandError, match="cannot set 'sensor.width_px'"):
-        apply_settings(MissionConfig(), ["sensor.width_px=640"])
-    with pytest.raises(CommandError, match="gate.k takes a int"):
+    cfg, modules = apply_settings(MissionConfig(), ["planner.n_candidates=16",
+                                                    "planner.max_step_m=2"])
+    assert (cfg.planner.n_candidates, cfg.planner.max_step_m) == (16, 2.0)
+    assert modules == {"planner"}
+    for refused in ("sensor.width_px=640", "planner.command=sh -c 'touch x'",
+                    "planner.programs=x", "planner.name=beam", "planner.flyer_margin_m=0",
+                    "planner.known_free_only=false", "gate"):
+        with pytest.raises(CommandError, match="cannot set .* in flight; settable: gate.k"):
+            apply_settings(MissionConfig(), [refused])
+    with pytest.raises(CommandError, match="gate.k takes an integer, got 'three'"):
         apply_settings(MissionConfig(), ["gate.k=three"])
-    # A value no module can run with is refused, not restarted on until the mission fails.
-    with pytest.raises(CommandError, match="--gate.k must be at least 1, got 0"):
-        apply_settings(MissionConfig(), ["gate.k=0"])
-    with pytest.raises(CommandError, match="--gate.epsilon-frac must be positive"):
-        apply_settings(MissionConfig(), ["gate.epsilon_frac=0"])
+    with pytest.raises(CommandError, match="gate.k takes an integer, got 'true'"):
+        apply_settings(MissionConfig(), ["gate.k=true"])
+    with pytest.raises(CommandError, match="gate.k takes an integer, got '2.5'"):
+        apply_settings(MissionConfig(), ["gate.k=2.5"])
+    # Out of range, NaN and infinities are refused before any module restarts.
+    for value in ("0", "101", "1e9"):
+        with pytest.raises(CommandError, match="gate.k"):
+            apply_settings(MissionConfig(), [f"gate.k={value}"])
+    for value in ("0", "NaN", "Infinity", "-Infinity", "1e308"):
+        with pytest.raises(CommandError, match="gate.epsilon_frac must be between"):
+            apply_settings(MissionConfig(), [f"gate.epsilon_frac={value}"])
+
+
+def test_the_ground_chooses_a_planner_by_name_never_a_command_line():
+    cfg = MissionConfig()
+    cfg.planner.programs = ("frontier=python examples/frontier_planner.py --radius 2",)
+    assert choose_planner(cfg, "beam").planner.name == "beam"
+    swapped = choose_planner(cfg, "frontier")
+    assert swapped.planner.command == "python examples/frontier_planner.py --radius 2"
+    back = choose_planner(swapped, "greedy")
+    assert (back.planner.name, back.planner.command) == ("greedy", "")
+    for name in ("cmd", "sh", "frontier2"):
+        with pytest.raises(CommandError, match="choose one of: auto, beam, greedy, frontier"):
+            choose_planner(cfg, name)
+    # The program runs with the mission's own interpreter, whatever python is on the PATH.
+    argv = program_argv(swapped.planner.command)
+    assert argv == [sys.executable, "examples/frontier_planner.py", "--radius", "2"]
+    assert program_argv("/opt/bin/planner -v") == ["/opt/bin/planner", "-v"]
+
+
+@pytest.mark.parametrize("entries, why", [
+    (("frontier",), "is not NAME=COMMAND"),
+    (("=python x.py",), "is not NAME=COMMAND"),
+    (("a b=python x.py",), "is not NAME=COMMAND"),
+    (("f=python a.py", "f=python b.py"), "names 'f' twice"),
+])
+def test_bad_planner_programs_are_one_line(entries, why):
+    cfg = MissionConfig()
+    cfg.planner.programs = entries
+    with pytest.raises(ConfigError, match=why):
+        check_values(cfg)
+
+
+def test_a_planner_program_may_not_take_a_built_in_name():
+    cfg = MissionConfig()
+    cfg.planner.programs = ("beam=python x.py",)
+    with pytest.raises(ConfigError, match="'beam' is the name of a built-in planner"):
+        check_runnable(cfg)
 
 
 # --- end to end: the process set, the bridge and a ground station, in Zenoh peer mode ------
@@ -379,12 +429,14 @@ def test_telemetry_crosses_blackouts_whole_and_commands_wait_for_a_window(tmp_pa
 @pytest.mark.e2e
 def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
     """A ground command replaces the built-in planner with a program that only knows zenoh
-    and rosbags (examples/frontier_planner.py); it plans every later step."""
+    and rosbags (examples/frontier_planner.py), named at launch; it plans every later step,
+    run by the mission's own interpreter although its command line says python."""
     steps = 14
     m = LinkedMission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
-                "--contact.light-time-s", "0", steps=steps)
+                      "--contact.light-time-s", "0", "--planner.programs",
+                      f"frontier=python {EXAMPLES / 'frontier_planner.py'}", steps=steps)
     m.wait_step(3)
-    m.command(f"planner cmd {sys.executable} {EXAMPLES / 'frontier_planner.py'}")
+    m.command("planner frontier")
     metrics, rows, _ = m.finish()
     (command,) = metrics["link"]["commands"]
     assert command["state"] == "executed", command
@@ -395,6 +447,31 @@ def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
     assert planned == list(range(swapped, steps)), (swapped, planned)
     assert metrics["state"] == "done" and len(metrics["coverage"]) == steps + 1
     assert metrics["coverage"][-1] > metrics["coverage"][swapped]
+
+
+@pytest.mark.e2e
+def test_a_swap_that_does_not_come_up_is_rolled_back(tmp_path: Path):
+    """A planner program that exits at once: the swap is undone, the acknowledgement says
+    why, and the mission's numbers are those of a mission that never swapped."""
+    steps = 12
+    m = LinkedMission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
+                      "--contact.light-time-s", "0", "--planner.programs",
+                      "broken=python -c 'import sys; sys.exit(3)'", steps=steps)
+    m.wait_step(3)
+    m.command("planner broken")
+    metrics, rows, _ = m.finish()
+    (command,) = metrics["link"]["commands"]
+    assert command["state"] == "rejected", command
+    assert "did not come up with the new configuration (module 'planner' exited with code 3" \
+        in command["detail"] and "the previous configuration runs on" in command["detail"]
+    events = [r["event"] for r in rows if r["kind"] == "event"]
+    assert "reconfiguration-rolled-back" in events and "mission-done" in events
+    assert metrics["state"] == "done" and metrics["link"]["reconfigurations"] == []
+    clean = run_cli("run", "--steps", str(steps), "--in-process", "--out", str(tmp_path / "i"),
+                    timeout=300)
+    assert clean.returncode == 0, clean.stderr[-3000:]
+    i = json.loads((tmp_path / "i" / "metrics.json").read_text())
+    assert metrics["coverage"] == i["coverage"]
 
 
 @pytest.mark.e2e

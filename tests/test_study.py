@@ -216,7 +216,8 @@ def test_study_refuses_mission_flags_it_sets_itself(argv, message):
 
 
 @pytest.mark.parametrize("flag", ["--mission.contact.period-steps", "--mission.planner.command",
-                                  "--mission.max-restarts", "--mission.listen",
+                                  "--mission.planner.programs", "--mission.max-restarts",
+                                  "--mission.listen",
                                   "--mission.step-timeout-s=5"])
 def test_study_refuses_mission_flags_that_only_the_process_set_reads(flag):
     with pytest.raises(StudyFlagError, match="has no effect on a study: every run is in one "
