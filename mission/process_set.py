@@ -146,18 +146,21 @@ class ProcessSetTransport:
         says why: a bad swap costs the mission a few seconds, not its life."""
         previous = self._cfg
         try:
-            self._restart_with(cfg, modules, step, restart=False)
+            self._restart_with(cfg, modules, step, new=True)
         except MissionFailed as exc:
             why = str(exc).splitlines()[0]
             log.warning("%s did not come up with the new configuration (%s); restarting with "
                         "the previous one", ", ".join(modules), why)
-            self._restart_with(previous, modules, step, restart=True)
+            self._restart_with(previous, modules, step, new=False)
             raise ReconfigurationFailed(
                 f"{', '.join(modules)} did not come up with the new configuration ({why}); "
                 "the previous configuration runs on") from None
 
     def _restart_with(self, cfg: MissionConfig, modules: list[str], step: int,
-                      restart: bool) -> None:
+                      new: bool) -> None:
+        """Restart ``modules`` with ``cfg`` and wait for their tokens; with a ``new``
+        configuration, one of them exiting raises :class:`MissionFailed` at once (a module
+        that cannot run with it is not restarted on it)."""
         self._cfg = cfg
         self._configs += 1
         self.config_path = self.out / f"config.{self._configs}.json"
@@ -166,8 +169,7 @@ class ProcessSetTransport:
             self.supervisor.replace(modules, step)
         self._wait(lambda: self.supervisor.alive.issuperset(modules),
                    "the liveliness tokens of the restarted " + ", ".join(modules),
-                   cfg.ready_timeout_s, restart=restart,
-                   exit_when="while coming up with the new configuration")
+                   cfg.ready_timeout_s, exits_fail=modules if new else ())
 
     # --- callbacks (Zenoh's threads) ------------------------------------------------------
 
@@ -230,7 +232,7 @@ class ProcessSetTransport:
         return bool(dead)
 
     def _wait(self, ready: Callable[[], bool], what: str, timeout_s: float,
-              restart: bool = True, exit_when: str = "before the mission started") -> None:
+              restart: bool = True, exits_fail: tuple[str, ...] | list[str] = ()) -> None:
         deadline = time.monotonic() + timeout_s
         with self.inbox.cv:
             while not ready():
@@ -242,11 +244,14 @@ class ProcessSetTransport:
                 self.inbox.cv.wait(min(left, 0.05))
                 if STOP.is_set():
                     raise KeyboardInterrupt
+                for name in exits_fail:
+                    self.supervisor.fail_on_exit(
+                        "while coming up with the new configuration", only=name)
                 if restart:
                     if self._check_processes():  # a restart gets the full time again
                         deadline = time.monotonic() + self._cfg.ready_timeout_s + timeout_s
                 else:
-                    self.supervisor.fail_on_exit(exit_when)
+                    self.supervisor.fail_on_exit()
 
     # --- Transport ------------------------------------------------------------------------
 

@@ -179,11 +179,14 @@ class ProcessSupervisor:
         for name in names:
             self._respawn(name, step)
 
-    def fail_on_exit(self, when: str = "before the mission started") -> None:
+    def fail_on_exit(self, when: str = "before the mission started",
+                     only: str | None = None) -> None:
         """Before the mission starts (or while modules come up with a new configuration), a
-        module that exits is a configuration fault: raise :class:`MissionFailed` with the end
-        of its log."""
+        module that exits (of all, or ``only`` this one) is a configuration fault: raise
+        :class:`MissionFailed` with the end of its log."""
         for name, p in self.procs.items():
+            if only is not None and name != only:
+                continue
             code = p.poll()
             if code is not None:
                 raise MissionFailed(
