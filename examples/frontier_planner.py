@@ -14,7 +14,8 @@ docs/writing-a-planner.md:
 The strategy: lay the map on a 2D grid, call a cell a frontier when it holds map points and
 borders cells that hold none, and drive in a straight line to the best frontier within the
 step's budget (frontier size over distance), over cells the map knows and that are not
-obstacles. Nothing within reach: turn in place a quarter turn.
+obstacles (or, within the camera's blind band next to the rover, cells it does not know).
+Nothing within reach: turn in place a quarter turn.
 
     python examples/frontier_planner.py --connect tcp/127.0.0.1:7447 --namespace rover
 
@@ -40,6 +41,9 @@ CELL_M = 0.5
 MAX_STEP_M = 3.0
 OBSTACLE_SPAN_M = 0.35
 VISITED_M = 1.5
+HALF_WIDTH_M = 0.35  # the rover is 0.7 m wide
+BLIND_M = 2.5  # the mast camera (1.6 m up, 15 degrees down, 45 degrees field) first sees
+#               the ground about 2.1 m ahead
 
 
 def cloud_xyz(msg) -> np.ndarray:
@@ -56,7 +60,8 @@ def yaw_of(q) -> float:
 
 
 def choose_goal(points: np.ndarray, x: float, y: float,
-                visited: list[tuple[float, float]]) -> tuple[float, float] | None:
+                visited: list[tuple[float, float]],
+                blocked: set[tuple[int, int]] = frozenset()) -> tuple[float, float] | None:
     """The best frontier cell within reach along a free straight line, or None. Frontiers
     near where the rover has already stood are skipped (the band of ground next to the rover,
     which its mast camera cannot see, would otherwise hold it in place)."""
@@ -72,6 +77,10 @@ def choose_goal(points: np.ndarray, x: float, y: float,
     np.maximum.at(zmax, (ij[:, 0], ij[:, 1]), points[:, 2])
     known = np.isfinite(zmin)
     free = known & (zmax - zmin < OBSTACLE_SPAN_M)
+    for bi, bj in blocked:  # where the rover was stopped by something it did not see
+        a, b = bi - lo[0], bj - lo[1]
+        if 0 <= a < shape[0] and 0 <= b < shape[1]:
+            known[a, b], free[a, b] = True, False
     unknown = np.pad(~known, 1, constant_values=True)
     border = sum(unknown[1 + di:1 + di + shape[0], 1 + dj:1 + dj + shape[1]].astype(int)
                  for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj)
@@ -91,18 +100,27 @@ def choose_goal(points: np.ndarray, x: float, y: float,
         d = dist[k]
         if score[k] < 0 or d < VISITED_M:
             continue
-        # Head for it, at most MAX_STEP_M, if every cell on the way is known and free (the
-        # cells next to the rover are exempt: its mast camera cannot see them).
+        # Head for it, at most MAX_STEP_M, if every cell on the way is known and free. Within
+        # BLIND_M of the rover a cell may also be unknown (its mast camera cannot see the
+        # ground there), but never a known obstacle.
         reach = min(d, MAX_STEP_M)
         gx = x + (cx[k] - x) * reach / d
         gy = y + (cy[k] - y) * reach / d
         ok = True
-        for s in np.arange(1.0, reach, CELL_M / 2):
-            px, py = x + (gx - x) * s / reach, y + (gy - y) * s / reach
-            a = int(math.floor(px / CELL_M)) - lo[0]
-            b = int(math.floor(py / CELL_M)) - lo[1]
-            if not (0 <= a < shape[0] and 0 <= b < shape[1] and free[a, b]):
+        ux, uy = (gx - x) / reach, (gy - y) / reach
+        for s in np.arange(CELL_M / 2, reach + 1e-9, CELL_M / 2):
+            for side in (-HALF_WIDTH_M, 0.0, HALF_WIDTH_M):  # the body's width, not a line
+                px, py = x + ux * s - uy * side, y + uy * s + ux * side
+                a = int(math.floor(px / CELL_M)) - lo[0]
+                b = int(math.floor(py / CELL_M)) - lo[1]
+                inside = 0 <= a < shape[0] and 0 <= b < shape[1]
+                if inside and free[a, b]:
+                    continue
+                if s < BLIND_M and not (inside and known[a, b]):
+                    continue
                 ok = False
+                break
+            if not ok:
                 break
         if ok:
             return gx, gy
@@ -154,6 +172,8 @@ def main() -> None:
     publisher = session.declare_publisher(f"{ns}/plan/path", encoding=PATH_ENCODING)
     planned: set[int] = set()
     visited: list[tuple[float, float]] = []
+    blocked: set[tuple[int, int]] = set()
+    intended: dict[int, tuple[float, float, float, float]] = {}  # step -> start and goal
 
     def try_plan() -> None:
         with lock:
@@ -161,8 +181,19 @@ def main() -> None:
             ready = sorted(s for s in set(maps) & set(poses) if s > last)
             for step in ready:
                 pose = poses[step]
-                visited.append((pose.position.x, pose.position.y))
-                goal = choose_goal(maps[step], pose.position.x, pose.position.y, visited)
+                x, y = pose.position.x, pose.position.y
+                visited.append((x, y))
+                before = intended.get(step - 1)
+                if before is not None and math.hypot(x - before[0], y - before[1]) < 0.5 * \
+                        math.hypot(before[2] - before[0], before[3] - before[1]):
+                    # Stopped well short of the last goal: something it did not see stands
+                    # just ahead of where it is now. Never drive into that cell again.
+                    heading = math.atan2(before[3] - before[1], before[2] - before[0])
+                    blocked.add((int(math.floor((x + 0.8 * math.cos(heading)) / CELL_M)),
+                                 int(math.floor((y + 0.8 * math.sin(heading)) / CELL_M))))
+                goal = choose_goal(maps[step], x, y, visited, blocked)
+                if goal is not None:
+                    intended[step] = (x, y, *goal)
                 path = make_path(step, pose, goal)
                 publisher.put(bytes(STORE.serialize_cdr(path, "nav_msgs/msg/Path")))
                 planned.add(step)

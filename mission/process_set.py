@@ -145,6 +145,15 @@ class ProcessSetTransport:
         are restarted with the previous configuration and :class:`ReconfigurationFailed`
         says why: a bad swap costs the mission a few seconds, not its life."""
         previous = self._cfg
+        if step > 0:
+            # The boundary comes once the simulator's step - 1 is in; the modules downstream
+            # may still be at work on it. Stopping one then would lose its output of step - 1,
+            # which nobody would send again (the new one starts at ``step``).
+            progress = [MODULES[m].progress for m in modules]
+            self._wait(lambda: all(self.inbox.last_seen.get(t, -1) >= step - 1
+                                   for t in progress),
+                       f"the outputs of step {step - 1} of {', '.join(modules)}",
+                       self._cfg.step_timeout_s)
         try:
             self._restart_with(cfg, modules, step, new=True)
         except MissionFailed as exc:

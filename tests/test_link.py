@@ -450,6 +450,21 @@ def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
 
 
 @pytest.mark.e2e
+def test_the_example_planner_explores(tmp_path: Path):
+    """examples/frontier_planner.py, started as the README says, drives off on the default
+    scene (its mast camera's blind band once held it turning in place: 0.0 m in 30 steps)."""
+    r = run_cli("run", "--steps", "20", "--planner.command",
+                f"python {EXAMPLES / 'frontier_planner.py'}", "--out", str(tmp_path / "f"),
+                timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    m = json.loads((tmp_path / "f" / "metrics.json").read_text())
+    log = (tmp_path / "f" / "logs" / "planner.log").read_text()
+    assert m["path_length_m"] > 20, m["path_length_m"]
+    assert m["coverage"][-1] > m["coverage"][0] + 0.3, m["coverage"]
+    assert log.count("turning in place") < 5 and m["stuck_steps"] == 0
+
+
+@pytest.mark.e2e
 def test_a_swap_that_does_not_come_up_is_rolled_back(tmp_path: Path):
     """A planner program that exits at once: the swap is undone, the acknowledgement says
     why, and the mission's numbers are those of a mission that never swapped."""
