@@ -28,6 +28,7 @@ class ContactPlan:
 
     cfg: ContactConfig
     _explicit: list[tuple[int, int]] = field(default_factory=list)
+    _held_from: int | None = None
 
     def __post_init__(self) -> None:
         c = self.cfg
@@ -46,8 +47,41 @@ class ContactPlan:
             raise ContactPlanError("contact plan needs --contact.step-s > 0, "
                                    "--contact.light-time-s >= 0 and --contact.downlink-kbps > 0")
 
+    def hold_open(self, step: int) -> None:
+        """Keep the link up from ``step`` on: after the mission, once the plan has no window
+        left (:meth:`end_of_mission`)."""
+        self._held_from = step if self._held_from is None else min(self._held_from, step)
+
+    def end_of_mission(self, steps: int, drain_steps: int) -> str:
+        """How the telemetry left after the last step reaches the ground, in words; raises
+        :class:`ContactPlanError` if it never could.
+
+        After the last step the clock runs on in idle steps (at most ``drain_steps``, with a
+        ground station on the link) and the plan's windows go on; once the plan has no window
+        left (an explicit plan after its last window), the link is held open until everything
+        is acknowledged. A periodic plan whose next window after the mission opens too late
+        for the round trip within ``drain_steps`` is refused."""
+        first = self.next_open(steps + 1)
+        if first is None:
+            return (f"after the last step the link is held open (the plan has no window "
+                    f"left) for up to {drain_steps} idle steps until everything is "
+                    "acknowledged")
+        needed = first - steps + 2 * self.light_steps + 2
+        if needed > drain_steps:
+            raise ContactPlanError(
+                f"the end of the mission could never reach the ground: the first window after "
+                f"step {steps} opens at {first}, and its round trip needs {needed} idle steps, "
+                f"more than --contact.drain-steps {drain_steps}; raise --contact.drain-steps, "
+                "or plan a window nearer the end")
+        return (f"after the last step the windows go on (the next at step {first}), for up "
+                f"to {drain_steps} idle steps until everything is acknowledged"
+                + (", and the link is held open after the plan's last window"
+                   if self._explicit else ""))
+
     def is_open(self, step: int) -> bool:
         """Whether the link is up during step ``step``."""
+        if self._held_from is not None and step >= self._held_from:
+            return True
         if self._explicit:
             return any(s <= step < s + d for s, d in self._explicit)
         c = self.cfg
@@ -56,6 +90,13 @@ class ContactPlan:
 
     def next_open(self, step: int) -> int | None:
         """The first step >= ``step`` with the link up (None: no window ever again)."""
+        planned = self._next_planned(step)
+        if self._held_from is None:
+            return planned
+        held = max(step, self._held_from)
+        return held if planned is None else min(planned, held)
+
+    def _next_planned(self, step: int) -> int | None:
         if self._explicit:
             later = [max(s, step) for s, d in self._explicit if s + d > step]
             return min(later) if later else None

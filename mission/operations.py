@@ -164,10 +164,11 @@ class Operations:
         windows = plan.windows_between(0, cfg.steps)
         log.info("link to the ground on %s (written to %s; follow it with `rovergate ground "
                  "--mission %s`): %d windows in %d steps (first %s), light time %d steps, "
-                 "%g kbit/s; %d items already queued in %s", ", ".join(self.bridge.endpoints),
+                 "%g kbit/s; %d items already queued in %s; %s", ", ".join(self.bridge.endpoints),
                  self.bridge.link_file, control.out, len(windows), cfg.steps,
                  windows[0] if windows else "none", plan.light_steps, c.downlink_kbps,
-                 len(self.bridge.queue), self.bridge.queue.path)
+                 len(self.bridge.queue), self.bridge.queue.path,
+                 plan.end_of_mission(cfg.steps, c.drain_steps))
         self.paused = False
         self.abort = False
         self.events_sent = 0
@@ -288,6 +289,8 @@ class Operations:
         t0 = time.monotonic()
         while self.bridge.station_connected and not self.bridge.settled and \
                 idle < self.cfg.contact.drain_steps and not STOP.is_set():
+            if self.bridge.plan.next_open(self.bridge.clock) is None:
+                self.bridge.plan.hold_open(self.bridge.clock)  # no window left: stay up
             self.bridge.tick()
             idle += 1
             time.sleep(self.cfg.contact.idle_step_wall_s)

@@ -47,7 +47,7 @@ def check_runnable(cfg: MissionConfig) -> None:
     if cfg.contact.enabled and not cfg.in_process:
         from mission.contact import ContactPlan, ContactPlanError
         try:
-            ContactPlan(cfg.contact)
+            ContactPlan(cfg.contact).end_of_mission(cfg.steps, cfg.contact.drain_steps)
         except ContactPlanError as exc:
             raise ConfigError(str(exc)) from None
 

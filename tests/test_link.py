@@ -37,6 +37,25 @@ def test_periodic_and_explicit_windows():
     assert explicit.windows_between(0, 100) == [(10, 15), (40, 43)]
 
 
+def test_the_end_of_a_mission_always_has_a_way_down():
+    # Explicit windows that end with the mission: the link is then held open.
+    plan = ContactPlan(ContactConfig(windows=("0+60",), light_time_s=90, step_s=60))
+    assert "held open" in plan.end_of_mission(60, 200)
+    assert plan.next_open(61) is None and not plan.is_open(61)
+    plan.hold_open(61)
+    assert plan.is_open(61) and plan.is_open(500) and plan.next_open(70) == 70
+    assert plan.is_open(10) and not plan.is_open(60)  # the plan itself is unchanged
+    # Periodic windows go on after the mission; one too far for the round trip is refused.
+    periodic = ContactPlan(ContactConfig(period_steps=25, window_steps=5))
+    assert "the next at step 100" in periodic.end_of_mission(90, 200)
+    sparse = ContactPlan(ContactConfig(period_steps=300, window_steps=5, light_time_s=90,
+                                       step_s=60))
+    with pytest.raises(ContactPlanError, match="could never reach the ground: the first "
+                                               "window after step 100 opens at 300"):
+        sparse.end_of_mission(100, 200)
+    assert "the next at step 300" in sparse.end_of_mission(100, 300)
+
+
 def test_light_time_and_rate_in_steps():
     plan = ContactPlan(ContactConfig(step_s=60, light_time_s=90, downlink_kbps=128))
     assert plan.light_steps == 2  # 1.5 steps, rounded up to the next step boundary
@@ -447,6 +466,23 @@ def test_planner_swapped_mid_mission_takes_over(tmp_path: Path):
     assert planned == list(range(swapped, steps)), (swapped, planned)
     assert metrics["state"] == "done" and len(metrics["coverage"]) == steps + 1
     assert metrics["coverage"][-1] > metrics["coverage"][swapped]
+
+
+@pytest.mark.e2e
+def test_the_end_of_a_mission_reaches_the_ground_when_the_windows_end_with_it(
+        tmp_path: Path):
+    """--contact.windows 0+N for an N-step mission: the last items, the final status and the
+    mission-done event come down over the link held open after the plan's last window."""
+    steps = 10
+    m = LinkedMission(tmp_path, "--contact.windows", f"0+{steps}", "--contact.light-time-s",
+                      "60", steps=steps)
+    metrics, rows, _ = m.finish()
+    events = [r["event"] for r in rows if r["kind"] == "event"]
+    assert "mission-done" in events, events
+    statuses = [r for r in rows if r["kind"] == "status"]
+    assert statuses[-1]["state"] == "done" and statuses[-1]["step"] == steps
+    assert metrics["link"]["undelivered"] == 0
+    assert metrics["link"]["drain_idle_steps"] < 20, metrics["link"]
 
 
 @pytest.mark.e2e
