@@ -46,6 +46,15 @@ PROJECT_TYPES = ("MissionStatus", "ExecutionReport", "StepTiming", "TelemetryFra
                  "DownlinkAck", "GroundCommand", "CommandAck", "MissionEvent")
 
 
+#: The largest messages a reader accepts. A payload over MAX_PAYLOAD_BYTES is refused before
+#: it is parsed, and a declared point count, image size or path length over its limit before
+#: anything is allocated for it: a forged header cannot make a module allocate gigabytes.
+MAX_PAYLOAD_BYTES = 512 * 2**20
+MAX_POINTS = 10_000_000
+MAX_IMAGE_PIXELS = 4096 * 4096
+MAX_PATH_POSES = 10_000
+
+
 class MessageError(ValueError):
     """A message that does not decode, or decodes to the wrong type or shape."""
 
@@ -93,6 +102,9 @@ def depth_from_ros(msg) -> tuple[int, np.ndarray]:
     if msg.is_bigendian:
         raise MessageError("depth image is big-endian, expected little-endian")
     h, w = int(msg.height), int(msg.width)
+    if h * w > MAX_IMAGE_PIXELS:
+        raise MessageError(f"depth image of {w}x{h} is over the limit of {MAX_IMAGE_PIXELS} "
+                           "pixels")
     if h == 0 or w == 0 or msg.step != 4 * w or len(msg.data) != 4 * w * h:
         raise MessageError(f"depth image of {w}x{h} with row step {msg.step} carries "
                            f"{len(msg.data)} bytes, expected {4 * w * h}")
@@ -114,8 +126,13 @@ def camera_info_to_ros(step: int, k: CameraIntrinsics):
 
 def camera_info_from_ros(msg) -> tuple[int, CameraIntrinsics]:
     K = np.asarray(msg.k, dtype=np.float64)
-    if K.shape != (9,) or K[0] <= 0 or K[4] <= 0 or msg.width == 0 or msg.height == 0:
-        raise MessageError("camera info has no valid intrinsics (k must hold fx, fy > 0)")
+    if K.shape != (9,) or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0 \
+            or msg.width == 0 or msg.height == 0:
+        raise MessageError("camera info has no valid intrinsics (k must hold finite fx, "
+                           "fy > 0)")
+    if int(msg.width) * int(msg.height) > MAX_IMAGE_PIXELS:
+        raise MessageError(f"camera info of {msg.width}x{msg.height} is over the limit of "
+                           f"{MAX_IMAGE_PIXELS} pixels")
     return _step(msg.header), CameraIntrinsics(int(msg.width), int(msg.height), float(K[0]),
                                                float(K[4]), float(K[2]), float(K[5]))
 
@@ -136,8 +153,10 @@ def _pose_from_msg(msg) -> Pose:
     values = np.array([p.x, p.y, p.z, *quat])
     if not np.all(np.isfinite(values)):
         raise MessageError("pose holds a non-finite value")
-    if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
-        raise MessageError(f"pose quaternion has norm {np.linalg.norm(quat):.4f}, expected 1")
+    with np.errstate(over="ignore"):  # a forged 1e308 has an infinite norm: refused below
+        norm = float(np.linalg.norm(quat))
+    if abs(norm - 1.0) > 1e-3:
+        raise MessageError(f"pose quaternion has norm {norm:.4f}, expected 1")
     return Pose(np.array([p.x, p.y, p.z], dtype=np.float64), quat)
 
 
@@ -156,6 +175,9 @@ def path_to_ros(path: PlanPath):
 
 
 def path_from_ros(msg) -> PlanPath:
+    if len(msg.poses) > MAX_PATH_POSES:
+        raise MessageError(f"path of {len(msg.poses)} poses is over the limit of "
+                           f"{MAX_PATH_POSES}")
     return PlanPath(_step(msg.header), [_pose_from_msg(p.pose) for p in msg.poses])
 
 
@@ -176,6 +198,9 @@ def cloud_to_ros(step: int, cloud: np.ndarray):
 
 def cloud_from_ros(msg, expected: np.dtype) -> tuple[int, np.ndarray]:
     """sensor_msgs/PointCloud2 -> structured array of ``expected`` dtype, checked field by field."""
+    if int(msg.width) * int(msg.height) > MAX_POINTS:
+        raise MessageError(f"point cloud of {int(msg.width) * int(msg.height)} points is over "
+                           f"the limit of {MAX_POINTS}")
     got = {f.name: (int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields}
     for name in expected.names:
         if name not in got:
@@ -360,6 +385,9 @@ def encode_item(kind: str, value: Any) -> tuple[str, bytes]:
 
 def decode_item(kind: str, msgtype: str, payload: bytes) -> Any:
     """The value of a downlinked item. Raises :class:`MessageError` on anything malformed."""
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise MessageError(f"telemetry item of {len(payload)} bytes is over the limit of "
+                           f"{MAX_PAYLOAD_BYTES}")
     if kind not in ITEM_TYPES or ITEM_TYPES[kind][0] != msgtype:
         raise MessageError(f"telemetry item of kind {kind!r} with type {msgtype!r} is not one "
                            "this version knows")
@@ -405,6 +433,9 @@ def encode(topic: str, value: Any) -> bytes:
 def decode(topic: str, payload: bytes) -> tuple[int, Any]:
     """CDR bytes -> (step, value). Raises :class:`MessageError` on anything malformed."""
     msgtype = TOPICS[topic].msgtype
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise MessageError(f"{msgtype} of {len(payload)} bytes is over the limit of "
+                           f"{MAX_PAYLOAD_BYTES}")
     try:
         msg = TYPESTORE.deserialize_cdr(payload, msgtype)
     except Exception as exc:  # rosbags raises several kinds for truncated or garbage bytes
