@@ -300,7 +300,9 @@ class ContactConfig:
     Empty: a free port on 127.0.0.1 (port 0 in any endpoint also takes a free port), so that
     missions on one machine never collide. The endpoints opened go into OUT/ground.json while
     the link is up, where `rovergate ground --mission OUT` finds them. tcp/0.0.0.0:7448 lets
-    another machine in (`rovergate ground --connect tcp/ROVER:7448`)."""
+    another machine in (`rovergate ground --connect tcp/ROVER:7448`); the link is not
+    authenticated yet (README, Security), and the mission warns at start when an endpoint is
+    not on loopback."""
     ground_namespace: str = "ground"
     """Prefix of the ground network's keys."""
     drain_steps: int = 200

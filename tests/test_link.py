@@ -18,7 +18,7 @@ from mission.bridge import LINK_FILE
 from mission.contact import ContactPlan, ContactPlanError
 from mission.downlink import DownlinkQueue
 from mission.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
-from mission.operations import CommandError, apply_settings, choose_planner
+from mission.operations import CommandError, _loopback, apply_settings, choose_planner
 from mission.process_set import program_argv
 from mission.run import check_runnable
 from rovergate.config import ContactConfig, MissionConfig, check_values
@@ -579,3 +579,11 @@ def test_two_missions_with_default_links_run_side_by_side(tmp_path: Path):
                  for log in logs]
     assert endpoints[0] != endpoints[1]
     assert not any((tmp_path / name / LINK_FILE).exists() for name in ("one", "two"))
+
+
+@pytest.mark.parametrize("endpoint, loopback", [
+    ("tcp/127.0.0.1:7448", True), ("tcp/[::1]:7448", True), ("tcp/localhost:7448", True),
+    ("tcp/0.0.0.0:7448", False), ("tcp/10.0.0.2:7448", False), ("tcp/[::]:7448", False),
+])
+def test_the_mission_knows_which_ground_endpoints_leave_loopback(endpoint, loopback):
+    assert _loopback(endpoint) is loopback
