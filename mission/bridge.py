@@ -282,8 +282,12 @@ class GroundBridge:
         step after, one step of slack for the ground's own latency), the answer waits for a
         window and travels L back."""
         light = self.plan.light_steps
+        # No window left: after the mission the link is held open (ContactPlan.hold_open),
+        # so the answer can come at once then; it is radiated again if it does not.
         window = self.plan.next_open(k + light + 2)
-        return float("inf") if window is None else (window + light) * self.cfg.step_s
+        if window is None:
+            window = k + light + 2
+        return (window + light) * self.cfg.step_s
 
     @property
     def settled(self) -> bool:

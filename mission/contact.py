@@ -61,18 +61,29 @@ class ContactPlan:
         left (an explicit plan after its last window), the link is held open until everything
         is acknowledged. A periodic plan whose next window after the mission opens too late
         for the round trip within ``drain_steps`` is refused."""
+        round_trip = 2 * self.light_steps + 2
         first = self.next_open(steps + 1)
         if first is None:
+            if round_trip > drain_steps:
+                raise ContactPlanError(
+                    f"the end of the mission could never reach the ground: a round trip takes "
+                    f"{round_trip} steps, more than --contact.drain-steps {drain_steps}; raise "
+                    "--contact.drain-steps")
             return (f"after the last step the link is held open (the plan has no window "
                     f"left) for up to {drain_steps} idle steps until everything is "
                     "acknowledged")
-        needed = first - steps + 2 * self.light_steps + 2
+        # A pause lets the clock run on past the last step: take the worst wait for a
+        # window, not the one after step ``steps``.
+        wait = first - steps if self._explicit else max(
+            first - steps, self.cfg.period_steps - self.cfg.window_steps + 1)
+        needed = wait + round_trip
         if needed > drain_steps:
             raise ContactPlanError(
-                f"the end of the mission could never reach the ground: the first window after "
-                f"step {steps} opens at {first}, and its round trip needs {needed} idle steps, "
-                f"more than --contact.drain-steps {drain_steps}; raise --contact.drain-steps, "
-                "or plan a window nearer the end")
+                f"the end of the mission could never reach the ground: after the last step a "
+                f"window can be {wait} steps away (the first after step {steps} opens at "
+                f"{first}), and with the round trip that needs {needed} idle steps, more than "
+                f"--contact.drain-steps {drain_steps}; raise --contact.drain-steps, or plan "
+                "windows nearer the end")
         return (f"after the last step the windows go on (the next at step {first}), for up "
                 f"to {drain_steps} idle steps until everything is acknowledged"
                 + (", and the link is held open after the plan's last window"

@@ -53,9 +53,12 @@ class Journal:
         return KEEP_ALL | KEEP_LAST
 
     def add(self, topic: str, step: int, payload: bytes) -> None:
-        """Record a sample (a repeated step replaces the earlier one: replays are
-        deterministic, so both hold the same bytes)."""
+        """Record a sample. A repeated step keeps the first: replays are deterministic, so a
+        module that redoes a step sends the same bytes, and anything else sent later for a
+        step already recorded is not what the mission ran on."""
         entries = self._entries[topic]
+        if step in entries:
+            return
         entries[step] = Entry(step, payload)
         if topic in KEEP_LAST:
             for old in [s for s in entries if s <= step - self.keep_last]:

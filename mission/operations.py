@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import re
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -58,6 +59,11 @@ IN_FLIGHT: dict[str, tuple[float, float]] = {
 }
 
 
+#: What ``set`` reads as a value: a plain decimal number, short (json.loads then cannot
+#: overflow, recurse or take long), or NaN and the infinities (refused by the range check).
+_NUMBER = re.compile(r"-?\d{1,12}(\.\d{1,12})?([eE][-+]?\d{1,3})?|NaN|-?Infinity")
+
+
 class CommandError(ValueError):
     """A ground command the rover refuses (its acknowledgement says why)."""
 
@@ -75,11 +81,13 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
             raise CommandError(f"cannot set {key!r} in flight; settable: "
                                + ", ".join(IN_FLIGHT))
         section, _, name = key.partition(".")
-        try:
-            value: Any = json.loads(raw)
-        except ValueError:
-            value = raw
         old = data[section][name]
+        raw = raw.strip()
+        if not _NUMBER.fullmatch(raw):  # before any parsing: no huge or nested literals
+            raise CommandError(f"{key} takes a{'n' if isinstance(old, int) else ''} "
+                               f"{'integer' if isinstance(old, int) else 'number'}, "
+                               f"got {raw[:40]!r}")
+        value: Any = json.loads(raw)
         if isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         if type(value) is not type(old):
@@ -217,6 +225,10 @@ class Operations:
                 state = "executed"
             except CommandError as exc:
                 detail, state = str(exc), "rejected"
+            except (ValueError, TypeError, OverflowError, RecursionError) as exc:
+                # A command no check foresaw is refused, never the end of the mission.
+                log.exception("ground command %d (%s) failed", c.id, c.verb)
+                detail, state = f"refused: {type(exc).__name__}: {exc}"[:300], "rejected"
             log.info("ground command %d (%s %s) %s at step %d: %s", c.id, c.verb,
                      " ".join(c.args), state, step, detail)
             self.commands.append({"id": c.id, "verb": c.verb, "args": list(c.args),
@@ -239,8 +251,8 @@ class Operations:
         if verb == "abort":
             self.abort = True
             return f"aborted before step {step}"
-        if verb in ("condition", "planner") and not args:
-            raise CommandError(f"{verb} needs an argument (e.g. condition gated, planner beam)")
+        if verb in ("condition", "planner") and len(args) != 1:
+            raise CommandError(f"{verb} takes one name (e.g. condition gated, planner beam)")
         if verb == "set":
             cfg, modules = apply_settings(self.cfg, args)
         elif verb == "condition":

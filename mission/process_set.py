@@ -42,7 +42,7 @@ from rovergate.graph import LAUNCHED, MODULES, stage_module
 from rovergate.keys import Keys
 from rovergate.messages import MessageError, prepare
 from rovergate.module import STOP
-from rovergate.node import check_and_decode, stamp_of
+from rovergate.node import check_and_decode
 from rovergate.session import free_loopback_port, open_session
 from rovergate.types import MissionStatus, StepTiming
 
@@ -143,7 +143,9 @@ class ProcessSetTransport:
         then waiting for step ``step``'s inputs); they rebuild their state from the journal.
         If one of them exits or shows no liveliness token within ``ready_timeout_s``, they
         are restarted with the previous configuration and :class:`ReconfigurationFailed`
-        says why: a bad swap costs the mission a few seconds, not its life."""
+        says why: a swap whose module does not come up costs the mission a few seconds. (One
+        that comes up and fails later is restarted like any crashed module, at most
+        ``max_restarts`` times, with the new configuration.)"""
         previous = self._cfg
         if step > 0:
             # The boundary comes once the simulator's step - 1 is in; the modules downstream
@@ -184,16 +186,13 @@ class ProcessSetTransport:
 
     def _on_sample(self, topic: str) -> Callable[[zenoh.Sample], None]:
         journalled = topic in self.journal.topics
-        # Topics the mission only journals (the camera's depth, intrinsics and pose): it needs
-        # their step, not their value, and the module that replays them decodes them then.
-        step_only = journalled and topic not in _MISSION_INPUTS and topic != "timing"
 
         def callback(sample: zenoh.Sample) -> None:
             try:
-                if step_only:
-                    step, value = stamp_of(topic, sample), None
-                else:
-                    step, value = check_and_decode(topic, sample)
+                # Decoded whole even where only the step is needed (the camera's depth,
+                # intrinsics and pose, which the mission only journals): what the journal
+                # keeps is replayed into restarted modules, so it must be valid.
+                step, value = check_and_decode(topic, sample)
             except MessageError as exc:
                 with self.inbox.cv:
                     self._dropped += 1

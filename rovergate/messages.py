@@ -48,7 +48,8 @@ PROJECT_TYPES = ("MissionStatus", "ExecutionReport", "StepTiming", "TelemetryFra
 
 #: The largest messages a reader accepts. A payload over MAX_PAYLOAD_BYTES is refused before
 #: it is parsed, and a declared point count, image size or path length over its limit before
-#: anything is allocated for it: a forged header cannot make a module allocate gigabytes.
+#: its arrays are built: a forged header cannot make a module allocate more than the bytes it
+#: was sent.
 MAX_PAYLOAD_BYTES = 512 * 2**20
 MAX_POINTS = 10_000_000
 MAX_IMAGE_PIXELS = 4096 * 4096

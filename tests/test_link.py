@@ -50,10 +50,14 @@ def test_the_end_of_a_mission_always_has_a_way_down():
     assert "the next at step 100" in periodic.end_of_mission(90, 200)
     sparse = ContactPlan(ContactConfig(period_steps=300, window_steps=5, light_time_s=90,
                                        step_s=60))
-    with pytest.raises(ContactPlanError, match="could never reach the ground: the first "
-                                               "window after step 100 opens at 300"):
-        sparse.end_of_mission(100, 200)
-    assert "the next at step 300" in sparse.end_of_mission(100, 300)
+    with pytest.raises(ContactPlanError, match="could never reach the ground: after the last "
+                                               "step a window can be 296 steps away"):
+        sparse.end_of_mission(100, 300)  # a pause can put the end just after a window
+    assert "the next at step 300" in sparse.end_of_mission(100, 400)
+    # Held open, the round trip itself must fit.
+    far = ContactPlan(ContactConfig(windows=("0+10",), light_time_s=6000, step_s=60))
+    with pytest.raises(ContactPlanError, match="a round trip takes 202 steps"):
+        far.end_of_mission(10, 200)
 
 
 def test_light_time_and_rate_in_steps():
@@ -294,6 +298,11 @@ def test_settings_change_in_flight_only_where_allowed():
     for value in ("0", "101", "1e9"):
         with pytest.raises(CommandError, match="gate.k"):
             apply_settings(MissionConfig(), [f"gate.k={value}"])
+    # Nothing the parser could choke on reaches it (an overflow or a recursion once ended
+    # the mission at the step boundary).
+    for value in ("1" + "0" * 400, "[" * 100_000, "0x10", "1_000"):
+        with pytest.raises(CommandError, match="gate.epsilon_frac takes a number"):
+            apply_settings(MissionConfig(), [f"gate.epsilon_frac={value}"])
     for value in ("0", "NaN", "Infinity", "-Infinity", "1e308"):
         with pytest.raises(CommandError, match="gate.epsilon_frac must be between"):
             apply_settings(MissionConfig(), [f"gate.epsilon_frac={value}"])
