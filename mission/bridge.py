@@ -41,6 +41,7 @@ from mission.downlink import DownlinkQueue
 from rovergate.config import SessionConfig
 from rovergate.errors import ConfigError
 from rovergate.keys import Keys
+from rovergate.logs import log_drop
 from rovergate.messages import MessageError, encode, encode_item
 from rovergate.node import cdr_encoding, check_and_decode
 from rovergate.session import free_loopback_port, open_session
@@ -188,8 +189,8 @@ class GroundBridge:
             except MessageError as exc:
                 with self._lock:
                     self.dropped += 1
-                log.warning("dropped a message from the ground on %s: %s",
-                            self.keys.key(topic), exc)
+                    count = self.dropped
+                log_drop(log, count, "message from the ground", self.keys.key(topic), exc)
                 return
             with self._lock:
                 self._heard.append(value)

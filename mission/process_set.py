@@ -40,6 +40,7 @@ from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
 from rovergate.graph import LAUNCHED, MODULES, stage_module
 from rovergate.keys import Keys
+from rovergate.logs import log_drop
 from rovergate.messages import MessageError, prepare
 from rovergate.module import STOP
 from rovergate.node import check_and_decode
@@ -196,7 +197,8 @@ class ProcessSetTransport:
             except MessageError as exc:
                 with self.inbox.cv:
                     self._dropped += 1
-                log.warning("dropped a message on %s: %s", self.keys.key(topic), exc)
+                    count = self._dropped
+                log_drop(log, count, "message", self.keys.key(topic), exc)
                 return
             with self.inbox.cv:
                 if journalled:

@@ -20,3 +20,19 @@ def init_logging(process_name: str, level: str | None = None) -> logging.Logger:
     root.handlers[:] = [handler]
     root.setLevel(level)
     return logging.getLogger(f"rovergate.{process_name}")
+
+
+#: Dropped messages logged one by one, then one in this many (a flood of bad messages must
+#: not fill the disk with log lines; every one is still counted).
+DROP_LOG_FIRST = 20
+DROP_LOG_EVERY = 1000
+
+
+def log_drop(log: logging.Logger, count: int, what: str, where: str, why: object) -> None:
+    """Log the ``count``-th dropped message (the first DROP_LOG_FIRST, then every
+    DROP_LOG_EVERY-th, saying so)."""
+    if count <= DROP_LOG_FIRST:
+        log.warning("dropped a %s on %s: %s (%d dropped so far)", what, where, why, count)
+    elif count % DROP_LOG_EVERY == 0:
+        log.warning("dropped a %s on %s: %s (%d dropped so far; logging one in %d)", what,
+                    where, why, count, DROP_LOG_EVERY)

@@ -28,6 +28,7 @@ from rovergate.config import SessionConfig
 from rovergate.errors import TransportError
 from rovergate.graph import TOPICS, Module
 from rovergate.keys import Keys
+from rovergate.logs import log_drop
 from rovergate.messages import MessageError, decode, encode, prepare
 from rovergate.module import STOP, ModuleLogic, StepOutput
 from rovergate.session import open_session
@@ -112,8 +113,8 @@ class ModuleNode:
             except MessageError as exc:
                 with self._lock:
                     self.dropped += 1
-                self.log.warning("dropped a message on %s: %s (%d dropped so far)",
-                                 key, exc, self.dropped)
+                    count = self.dropped
+                log_drop(self.log, count, "message", key, exc)
                 return
             self._queue.put((topic, step, value))
         return on_sample

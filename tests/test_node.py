@@ -108,3 +108,17 @@ def test_the_step_of_a_journalled_message_is_read_from_its_header():
         stamp_of("depth", _Sample("pose", encode("pose", values["pose"])))
     with pytest.raises(MessageError, match="CDR"):
         stamp_of("depth", _Sample("depth", b"\x01\x00"))
+
+
+def test_a_flood_of_bad_messages_is_counted_whole_and_logged_sparsely(caplog):
+    import logging
+
+    from rovergate.logs import DROP_LOG_EVERY, DROP_LOG_FIRST, log_drop
+    log = logging.getLogger("rovergate.test-drops")
+    with caplog.at_level(logging.WARNING, logger=log.name):
+        for count in range(1, 5001):
+            log_drop(log, count, "message", "rover/x", "garbage")
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == DROP_LOG_FIRST + 5000 // DROP_LOG_EVERY
+    assert lines[0].endswith("(1 dropped so far)")
+    assert lines[-1].endswith("(5000 dropped so far; logging one in 1000)")
