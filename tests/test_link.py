@@ -591,8 +591,8 @@ def test_two_missions_with_default_links_run_side_by_side(tmp_path: Path):
 
 
 @pytest.mark.parametrize("endpoint, loopback", [
-    ("tcp/127.0.0.1:7448", True), ("tcp/[::1]:7448", True), ("tcp/localhost:7448", True),
-    ("tcp/0.0.0.0:7448", False), ("tcp/10.0.0.2:7448", False), ("tcp/[::]:7448", False),
+    ("tcp/127.0.0.1:0", True), ("tcp/[::1]:0", True), ("tcp/localhost:0", True),
+    ("tcp/0.0.0.0:0", False), ("tcp/10.0.0.2:0", False), ("tcp/[::]:0", False),
 ])
 def test_the_mission_knows_which_ground_endpoints_leave_loopback(endpoint, loopback):
     assert _loopback(endpoint) is loopback
