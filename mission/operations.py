@@ -83,17 +83,13 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
         section, _, name = key.partition(".")
         old = data[section][name]
         raw = raw.strip()
-        if not _NUMBER.fullmatch(raw):  # before any parsing: no huge or nested literals
-            raise CommandError(f"{key} takes a{'n' if isinstance(old, int) else ''} "
-                               f"{'integer' if isinstance(old, int) else 'number'}, "
-                               f"got {raw[:40]!r}")
-        value: Any = json.loads(raw)
-        if isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
+        # Parsed only if it is a short plain number: no huge or nested literal reaches json.
+        value: Any = json.loads(raw) if _NUMBER.fullmatch(raw) else None
+        if isinstance(old, float) and isinstance(value, int):
             value = float(value)
         if type(value) is not type(old):
-            raise CommandError(f"{key} takes a{'n' if isinstance(old, int) else ''} "
-                               f"{'integer' if isinstance(old, int) else 'number'}, "
-                               f"got {raw!r}")
+            kind = "an integer" if isinstance(old, int) else "a number"
+            raise CommandError(f"{key} takes {kind}, got {raw[:40]!r}")
         least, most = IN_FLIGHT[key]
         if not least <= value <= most:  # NaN fails too
             raise CommandError(f"{key} must be between {least} and {most}, got {raw!r}")
