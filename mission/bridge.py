@@ -290,6 +290,27 @@ class GroundBridge:
             window = k + light + 2
         return (window + light) * self.cfg.step_s
 
+    # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        """The link's state besides the onboard queue (which is its own file): the clock and
+        what is on its way. What the ground sent since the last tick is not in it: a manager
+        that dies loses it, as a radio loses what arrives while the receiver is off."""
+        return {"clock": self.clock, "held": list(self._held), "to_rover": list(self._to_rover),
+                "to_ground": list(self._to_ground), "budget": self._budget,
+                "radiated": self.radiated, "dropped": self.dropped,
+                "dropped_reported": self.dropped_reported}
+
+    def restore(self, snap: dict[str, Any]) -> None:
+        self.clock = int(snap["clock"])
+        self._held = list(snap["held"])
+        self._to_rover = list(snap["to_rover"])
+        self._to_ground = list(snap["to_ground"])
+        self._budget = int(snap["budget"])
+        self.radiated = int(snap["radiated"])
+        self.dropped = int(snap["dropped"])
+        self.dropped_reported = int(snap["dropped_reported"])
+
     @property
     def settled(self) -> bool:
         """Nothing left to send, nothing on its way, every item acknowledged."""

@@ -73,7 +73,7 @@ def _run(args: list[str]) -> int:
 def _module(name: str) -> Callable[[list[str]], int]:
     def main(args: list[str]) -> int:
         args = list(args)
-        resume_step = 0
+        resume_step = None
         if "--resume-step" in args:  # a module restarted by the mission resumes at step N
             i = args.index("--resume-step")
             value = args[i + 1] if i + 1 < len(args) else ""

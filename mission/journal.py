@@ -9,24 +9,31 @@ of the bulky per-step products (``keep_last``), which a restarted module needs o
 step it resumes at. Which topics go where is derived from the graph
 (:func:`rovergate.graph.journal_topics`).
 
-:class:`Journal` is plain data; :class:`JournalServer` answers a restarted module's queries
-for it over Zenoh.
+:class:`Journal` is plain data, written through to ``OUT/journal.sqlite`` in the process set
+(so that ``rovergate run --resume`` rebuilds every module after the mission manager itself
+died); :class:`JournalServer` answers a restarted module's queries for it over Zenoh.
 """
 
 from __future__ import annotations
 
 import logging
+import sqlite3
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import zenoh
 
+from rovergate.errors import ConfigError
 from rovergate.graph import journal_topics
 from rovergate.keys import Keys
 from rovergate.node import cdr_encoding
 
 log = logging.getLogger("rovergate.mission")
+
+JOURNAL = "journal.sqlite"
+"""The journal's file in the mission's directory (process set)."""
 
 #: Topics journalled for every step (what the modules rebuild their state from, and the
 #: ticks), and for the last ``keep_last`` steps only (a step's other inputs).
@@ -41,12 +48,46 @@ class Entry:
     payload: bytes
 
 
-class Journal:
-    """Per-topic, per-step store of samples (plain data; :class:`JournalServer` serves it)."""
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS entries (
+    topic TEXT NOT NULL, step INTEGER NOT NULL, payload BLOB NOT NULL,
+    PRIMARY KEY (topic, step)
+);
+"""
 
-    def __init__(self, keep_last: int = 3) -> None:
+
+class Journal:
+    """Per-topic, per-step store of samples (plain data; :class:`JournalServer` serves it).
+
+    With a ``path``, every change is written through to that SQLite file (WAL, no fsync per
+    sample: what was written survives the process being killed, though not necessarily a
+    power cut), and what the file holds is loaded first. Not thread-safe: its callers hold
+    the mission's lock."""
+
+    def __init__(self, keep_last: int = 3, path: Path | None = None) -> None:
         self.keep_last = keep_last
         self._entries: dict[str, dict[int, Entry]] = {t: {} for t in KEEP_ALL | KEEP_LAST}
+        self.path = path
+        self._db: sqlite3.Connection | None = None
+        if path is not None:
+            try:
+                self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.execute("PRAGMA synchronous=NORMAL")
+                self._db.executescript(_SCHEMA)
+                rows = self._db.execute("SELECT topic, step, payload FROM entries").fetchall()
+            except sqlite3.DatabaseError as exc:
+                raise ConfigError(f"the mission's journal {path} is not a usable SQLite file "
+                                  f"({exc}); a mission cannot resume without it: start it "
+                                  "again without --resume, in a new --out") from None
+            for topic, step, payload in rows:
+                if topic in self._entries:
+                    self._entries[topic][int(step)] = Entry(int(step), bytes(payload))
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
 
     @property
     def topics(self) -> frozenset[str]:
@@ -60,9 +101,22 @@ class Journal:
         if step in entries:
             return
         entries[step] = Entry(step, payload)
-        if topic in KEEP_LAST:
-            for old in [s for s in entries if s <= step - self.keep_last]:
-                del entries[old]
+        old = ([s for s in entries if s <= step - self.keep_last] if topic in KEEP_LAST
+               else [])
+        for s in old:
+            del entries[s]
+        if self._db is not None:
+            with self._db:
+                self._db.execute("BEGIN")
+                self._db.execute("INSERT OR IGNORE INTO entries VALUES (?, ?, ?)",
+                                 (topic, step, payload))
+                if old:
+                    self._db.execute("DELETE FROM entries WHERE topic = ? AND step <= ?",
+                                     (topic, step - self.keep_last))
+
+    def steps(self, topic: str) -> list[int]:
+        """The steps of ``topic`` the journal holds, in order."""
+        return sorted(self._entries.get(topic, {}))
 
     def range(self, topic: str, first: int, last: int) -> Iterator[Entry]:
         """The samples of steps ``first..last`` (inclusive) that the journal holds, by step."""

@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mission.checkpoint import CHECKPOINT, LoopState
+from mission.checkpoint import save as save_checkpoint
 from mission.coverage import CoverageEvaluator
 from mission.evaluation import StepEvaluator, collision_class
 from mission.metrics import suppression_audit
@@ -37,32 +39,47 @@ OnStep = Callable[[int, float], None]
 
 
 def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None = None,
-                operations_factory: Callable[[], Operations] | None = None) -> MissionRecord:
+                operations_factory: Callable[[], Operations] | None = None,
+                checkpoint: Path | None = None, resume: LoopState | None = None
+                ) -> MissionRecord:
     """Run ``cfg.steps`` planning steps over ``transport``; ``on_step(t, coverage)`` is called
     after each pose. ``operations_factory`` (process set only) builds the ground link's
-    :class:`mission.operations.Operations`. Raises :class:`rovergate.errors.MissionFailed` on
-    a fault."""
-    record = MissionRecord(mode=transport.mode)
+    :class:`mission.operations.Operations`. With ``checkpoint`` (a directory), the loop's
+    state is saved there after every step (:mod:`mission.checkpoint`); ``resume`` is such a
+    state to carry on from. Raises :class:`rovergate.errors.MissionFailed` on a fault."""
+    record = resume.record if resume else MissionRecord(mode=transport.mode)
     t_start = time.perf_counter()
+    wall_before = resume.record.wall_s if resume else 0.0
     state = "failed"
-    collisions = 0
+    collisions = resume.collisions if resume else 0
+    first = resume.step if resume else 0
     ops = None
-    condition = cfg.condition
+    condition = resume.condition if resume else cfg.condition
     try:
         ops = operations_factory() if operations_factory else None
+        if ops and resume and resume.operations:
+            ops.restore(resume.operations)
         transport.start()
         truth_surface = xyz(transport.ask("truth_surface"))
         evaluator = CoverageEvaluator(truth_surface, cfg.tau_m)
         # Evaluation only: O* (as the simulator derives it) to audit what the gate withheld,
         # to classify collisions and to weigh the planner's decisions (mission.evaluation).
         judge = StepEvaluator(cfg, truth_surface)
-        previous_base = None
-        if ops:
+        previous_base = resume.previous_base if resume else None
+        if ops and resume:
+            ops.bridge.event(first, "mission-resumed",
+                             f"the mission manager restarted; resuming at step {first} "
+                             f"after {time.perf_counter() - t_start:.1f} s")
+        elif ops:
             ops.bridge.event(0, "mission-started",
                              f"{cfg.scene.name}/{cfg.start}, {cfg.platform}, {cfg.condition}, "
                              f"{cfg.steps} steps")
+        if resume:
+            record.resumes.append({"step": first, "resume_s": time.perf_counter() - t_start})
+            log.info("resumed at step %d, %.1f s after the start", first,
+                     time.perf_counter() - t_start)
         t_step = time.perf_counter()
-        for t in range(cfg.steps + 1):
+        for t in range(first, cfg.steps + 1):
             if STOP.is_set():  # Ctrl-C or SIGTERM: stop at the step boundary
                 raise KeyboardInterrupt
             external = bool((ops.cfg if ops else cfg).planner.command)
@@ -124,6 +141,12 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 on_step(t, record.coverage[-1])
             if t == cfg.steps:
                 record.surface_xyz = xyz(surface)
+            elif checkpoint is not None:
+                record.wall_s = wall_before + time.perf_counter() - t_start
+                save_checkpoint(LoopState(
+                    t + 1, record, collisions, previous_base, condition,
+                    ops.cfg if ops else cfg, ops.snapshot() if ops else None,
+                    transport.snapshot()), checkpoint)
         else:
             state = "done"
     finally:
@@ -144,7 +167,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         record.add_stage(timing.module, timing.compute_s)
     record.restarts = transport.restarts()
     record.dropped_messages = transport.dropped()
-    record.wall_s = time.perf_counter() - t_start
+    record.wall_s = wall_before + time.perf_counter() - t_start
     return record
 
 
@@ -153,10 +176,17 @@ def run_in_process(cfg: MissionConfig, on_step: OnStep | None = None) -> Mission
     return run_mission(cfg, InProcessTransport(cfg), on_step)
 
 
-def run_processes(cfg: MissionConfig, on_step: OnStep | None = None) -> MissionRecord:
-    """The mission as a process set over Zenoh, with the ground link when it is enabled."""
+def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
+                  resume: LoopState | None = None) -> MissionRecord:
+    """The mission as a process set over Zenoh, with the ground link when it is enabled. Its
+    state is checkpointed in ``cfg.out`` after every step (removed when the mission ends,
+    kept when it fails or its manager is killed); ``resume`` carries on from such a state."""
     from mission.operations import Operations
     from mission.process_set import ProcessSetTransport
-    transport = ProcessSetTransport(cfg, Path(cfg.out))
+    out = Path(cfg.out)
+    transport = ProcessSetTransport(cfg, out, {**resume.transport, "step": resume.step}
+                                    if resume else None)
     factory = (lambda: Operations(transport)) if cfg.contact.enabled else None
-    return run_mission(cfg, transport, on_step, factory)
+    record = run_mission(cfg, transport, on_step, factory, checkpoint=out, resume=resume)
+    (out / CHECKPOINT).unlink(missing_ok=True)
+    return record

@@ -28,7 +28,7 @@ def make_logic(name: str, cfg: MissionConfig, ask: Ask | None = None) -> ModuleL
     return getattr(importlib.import_module(module), cls)(cfg, ask)
 
 
-def node_main(name: str, cfg: MissionConfig, resume_step: int = 0) -> int:
+def node_main(name: str, cfg: MissionConfig, resume_step: int | None = None) -> int:
     """A module as its own OS process: its logic on the Zenoh network until the mission ends
     (``rovergate sim|mapper|gate|planner``, as ``rovergate run`` starts them)."""
     from rovergate.graph import MODULES

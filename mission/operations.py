@@ -325,5 +325,24 @@ class Operations:
                 "dropped_ground_messages": self.bridge.dropped,
                 "commands": self.commands, "reconfigurations": self.reconfigurations}
 
+    # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        """Pause, the commands run so far (each runs once) and the link's state."""
+        return {"paused": self.paused, "events_sent": self.events_sent,
+                "commands": list(self.commands), "executed": sorted(self._executed),
+                "reconfigurations": list(self.reconfigurations),
+                "bridge": self.bridge.snapshot()}
+
+    def restore(self, snap: dict[str, Any]) -> None:
+        self.paused = bool(snap["paused"])
+        self.commands = list(snap["commands"])
+        self._executed = set(snap["executed"])
+        self.reconfigurations = list(snap["reconfigurations"])
+        self.bridge.restore(snap["bridge"])
+        # Restart events of the manager that died were reported by it (or are in its
+        # record); the new supervisor counts its own from 0.
+        self.events_sent = 0
+
     def close(self) -> None:
         self.bridge.close()

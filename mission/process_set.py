@@ -34,7 +34,7 @@ import zenoh
 
 from mission.clock import MissionClock
 from mission.inbox import Inbox
-from mission.journal import Journal, JournalServer
+from mission.journal import JOURNAL, Journal, JournalServer
 from mission.supervisor import ProcessSupervisor, RestartEvent
 from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
@@ -69,9 +69,14 @@ class ProcessSetTransport:
 
     mode = "processes"
 
-    def __init__(self, cfg: MissionConfig, out: Path) -> None:
+    def __init__(self, cfg: MissionConfig, out: Path, resume: dict[str, Any] | None = None
+                 ) -> None:
+        """``resume``: :meth:`snapshot` of the transport of a mission whose manager died; the
+        journal in ``out`` is loaded and every module resumes at the step before
+        ``resume["step"]``."""
         self._cfg = cfg
         self.out = out
+        self._resume = resume
         self.keys = Keys(cfg.session.namespace)
         self.endpoint, self.session = self._open_session(cfg)
         try:
@@ -101,17 +106,25 @@ class ProcessSetTransport:
                           f"(last: {failure})")
 
     def _declare(self, cfg: MissionConfig, out: Path) -> None:
-        self.journal = Journal()
+        journal_file = out / JOURNAL
+        if self._resume is None:
+            journal_file.unlink(missing_ok=True)  # another mission's, in the same --out
+            for extra in ("-wal", "-shm"):
+                journal_file.with_name(JOURNAL + extra).unlink(missing_ok=True)
+        self.journal = Journal(path=journal_file)
         prepare({*_MISSION_INPUTS, *self.journal.topics, *MODULES["mission"].asks, "timing"})
         watched = set(_MISSION_INPUTS) | {"timing"}
         self.inbox = Inbox(watched - {"timing"})
         self._timings: dict[tuple[str, int], StepTiming] = {}
         self._dropped = 0
+        self._restarts_before: list[dict[str, Any]] = []
         cv = self.inbox.cv
         self.journal_server = JournalServer(self.session, self.keys, self.journal, cv)
         self.clock = MissionClock(self.session, self.keys, self.journal, cv)
         self.config_path = out / "config.json"
         self._configs = 0
+        if self._resume is not None:
+            self._restore(self._resume)
         self.supervisor = ProcessSupervisor(LAUNCHED, self._command, out / "logs",
                                             cfg.max_restarts)
         self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_sample(t))
@@ -267,7 +280,13 @@ class ProcessSetTransport:
 
     def start(self) -> None:
         save_config(self._cfg, self.config_path)
-        self.supervisor.start_all()
+        if self._resume is None:
+            self.supervisor.start_all()
+        else:
+            # Every module redoes the last step the loop had finished, from the journal: the
+            # one step whose outputs the mission may not have had all of when it died.
+            step = max(0, self._resume["step"] - 1)
+            self.supervisor.start_all(resume_step=step)
         self._wait(lambda: self.supervisor.all_alive,
                    "the liveliness tokens of " + ", ".join(
                        self.keys.alive(m) for m in LAUNCHED if m not in self.supervisor.alive),
@@ -317,7 +336,25 @@ class ProcessSetTransport:
             return self._dropped + sum(by_module.values())
 
     def restarts(self) -> list[dict[str, Any]]:
-        return [e.as_dict() for e in self.supervisor.events]
+        return self._restarts_before + [e.as_dict() for e in self.supervisor.events]
+
+    # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        """What a resumed manager's transport needs: counts and timings so far."""
+        with self.inbox.cv:
+            return {"timings": list(self._timings.values()), "dropped": self.dropped(),
+                    "restarts": self.restarts(), "configs": self._configs}
+
+    def _restore(self, snap: dict[str, Any]) -> None:
+        # Each module counts its drops from 0 again: the counts so far become the mission's.
+        self._timings = {(t.module, t.step): dataclasses.replace(t, dropped_total=0)
+                         for t in snap["timings"]}
+        self._dropped = int(snap["dropped"])
+        self._restarts_before = list(snap["restarts"])
+        self._configs = int(snap["configs"])
+        if self._configs:  # the configuration a ground command made, as the modules read it
+            self.config_path = self.out / f"config.{self._configs}.json"
 
     def finish(self, final: MissionStatus, failed: bool) -> None:
         codes: dict[str, int | None] = {}

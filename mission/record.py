@@ -46,6 +46,9 @@ class MissionRecord:
     restarts: list[dict] = field(default_factory=list)
     """Modules that died and were restarted (process set only): module, step, reason, and
     the seconds from the death to the module's token and to the loop resuming."""
+    resumes: list[dict] = field(default_factory=list)
+    """Each time the mission manager itself was restarted (``rovergate run --resume``): the
+    step the loop resumed at and the seconds from the new manager's start to it."""
     link: dict = field(default_factory=dict)
     """The link to the ground (process set): link steps, items radiated and undelivered,
     ground commands and reconfigurations."""
@@ -103,6 +106,7 @@ class MissionRecord:
             "wall_s": self.wall_s,
             "dropped_messages": self.dropped_messages,
             "restarts": self.restarts,
+            "manager_resumes": self.resumes,
             "state": self.state,
             "link": self.link,
             "observed_points": int(len(self.surface_xyz)),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -10,6 +11,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from mapper.mapper import mission_checkpoint
+from mission.checkpoint import CHECKPOINT, LoopState
+from mission.checkpoint import load as load_checkpoint
 from mission.loop import run_in_process, run_processes
 from mission.report import write_report
 from planner.planner import PLANNERS, planner_name
@@ -52,23 +55,60 @@ def check_runnable(cfg: MissionConfig) -> None:
             raise ConfigError(str(exc)) from None
 
 
+def resumed_config(cfg: MissionConfig) -> tuple[MissionConfig, LoopState]:
+    """``--resume``: the configuration and state of the mission in ``cfg.out`` (raises
+    ConfigError if the command line sets anything else, or there is nothing to resume)."""
+    given = _flat(to_dict(cfg))
+    plain = _flat(to_dict(MissionConfig(out=cfg.out, resume=True, progress=cfg.progress)))
+    extra = sorted(k for k in given if given[k] != plain.get(k))
+    if extra:
+        raise ConfigError("--resume carries on the mission in --out as it was configured; "
+                          "leave out " + ", ".join("--" + k.replace("_", "-") for k in extra))
+    state = load_checkpoint(Path(cfg.out))
+    resumed = dataclasses.replace(state.cfg, out=cfg.out, progress=cfg.progress, resume=True)
+    if resumed.in_process:
+        raise ConfigError("--resume: the mission in --out ran in process; only a process-set "
+                          "mission keeps a checkpoint")
+    return resumed, state
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
 def main(cfg: MissionConfig) -> int:
     """Run one mission as configured and write its report under ``cfg.out``."""
     log = init_logging("mission")
+    state = None
+    if cfg.resume:
+        cfg, state = resumed_config(cfg)
     check_runnable(cfg)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out / "config.json")
-    log.info("config (saved to %s):\n%s", out / "config.json", json.dumps(to_dict(cfg), indent=1))
+    if state is None:
+        (out / CHECKPOINT).unlink(missing_ok=True)  # another mission's, in the same --out
+        save_config(cfg, out / "config.json")
+        log.info("config (saved to %s):\n%s", out / "config.json",
+                 json.dumps(to_dict(cfg), indent=1))
+    else:
+        log.info("resuming the mission in %s at step %d (checkpoint of %s)", out, state.step,
+                 state.saved_at)
     bar = tqdm(total=cfg.steps + 1, desc="mission", unit="step", disable=not cfg.progress,
-               file=sys.stderr)
+               file=sys.stderr, initial=state.step if state else 0)
 
     def on_step(t: int, coverage: float) -> None:
         bar.update(1)
         bar.set_postfix(coverage=f"{coverage:.3f}")
 
     try:
-        record = run_in_process(cfg, on_step) if cfg.in_process else run_processes(cfg, on_step)
+        record = (run_in_process(cfg, on_step) if cfg.in_process
+                  else run_processes(cfg, on_step, state))
     except MissionFailed as exc:
         bar.close()
         log.error("mission failed: %s", exc)

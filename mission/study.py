@@ -113,7 +113,7 @@ run, and what to do instead; ``{value}`` is the value given (VALUE if none)."""
 #: they would have no effect.
 PROCESS_SET_ONLY: tuple[str, ...] = (
     "contact", "planner.command", "planner.programs", "ready-timeout-s", "step-timeout-s",
-    "max-restarts", "mode", "connect", "listen", "namespace", "multicast-scouting",
+    "max-restarts", "resume", "mode", "connect", "listen", "namespace", "multicast-scouting",
     "wait-for-peers")
 
 

@@ -98,11 +98,12 @@ class ProcessSupervisor:
 
     # --- processes ------------------------------------------------------------------------
 
-    def start_all(self) -> None:
-        """Start every module, logging to ``logs_dir/<module>.log``."""
+    def start_all(self, resume_step: int | None = None) -> None:
+        """Start every module, logging to ``logs_dir/<module>.log``; with ``resume_step``
+        (a mission manager that was restarted), each resumes at that step."""
         self.logs_dir.mkdir(parents=True, exist_ok=True)
         for name in self.names:
-            self._spawn(name)
+            self._spawn(name, resume_step)
 
     def _spawn(self, name: str, resume_step: int | None = None) -> None:
         cmd = self.command_for(name, resume_step)

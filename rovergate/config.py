@@ -331,6 +331,11 @@ class MissionConfig:
     """Directory for metrics.json, coverage.csv, plots, config.json and logs."""
     in_process: bool = False
     """Run the whole loop in this process without Zenoh (same numbers, no transport)."""
+    resume: bool = False
+    """Carry on the process-set mission in --out whose mission manager was killed (or that
+    failed), from its last step boundary, with the configuration it had then
+    (OUT/checkpoint.pickle, OUT/journal.sqlite; see mission/checkpoint.py). Give only --out
+    (and --no-progress)."""
     ready_timeout_s: float = 120.0
     """How long to wait for every module's liveliness token."""
     step_timeout_s: float = 120.0

@@ -212,8 +212,6 @@ class ModuleNode:
         the journal.
         """
         restore_inputs = {n: self.spec.inputs[n] for n in self.spec.replay}
-        if step <= 0:
-            return
         # The mission journals every tick: an answer proves that the journal is reachable
         # (right after a session opens, a query may not be routed yet).
         deadline = time.monotonic() + timeout_s
@@ -301,16 +299,16 @@ class ModuleNode:
             step = self._handle_complete(logic, step, last_step)
 
     def run(self, logic: ModuleLogic, idle_timeout_s: float, last_step: int | None = None,
-            resume_step: int = 0) -> int:
+            resume_step: int | None = None) -> int:
         """Serve the module's queryables, declare readiness, spin until the mission ends,
         close; returns the exit code (0 when the mission said done or aborted).
 
-        ``resume_step`` > 0 (a restarted module): first rebuild the state from the journal
-        (:meth:`resume`)."""
+        ``resume_step`` (a restarted module, 0 included: the tick of step 0 may be out
+        already): first rebuild the state from the journal (:meth:`resume`)."""
         try:
             for topic in self.spec.serves:
                 self.serve(topic, lambda topic=topic: logic.serve(topic))
-            if resume_step > 0:
+            if resume_step is not None:
                 self.wait_for_peers()
                 self.resume(resume_step, logic)
             self.ready()

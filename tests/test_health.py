@@ -9,9 +9,10 @@ import signal
 from pathlib import Path
 
 import pytest
-from conftest import StatusWatcher, run_cli
+from conftest import StatusWatcher, run_cli, wait_gone
 
 from mission.journal import Journal
+from rovergate.errors import ConfigError
 from rovergate.session import free_loopback_port
 
 
@@ -27,6 +28,26 @@ def test_journal_keeps_every_step_of_replay_topics_and_the_last_of_bulky_ones():
     assert [e.payload for e in j.range("depth", 3, 3)] == [bytes([3])]
     assert [e.step for e in j.range("surface", 0, 4)] == [3, 4]
     assert list(j.range("depth", 7, 9)) == []
+
+
+def test_the_journal_file_holds_what_the_journal_held(tmp_path: Path):
+    """Written through as samples come: a journal opened again on the file (a restarted
+    mission manager's) serves the same samples, bulky topics trimmed as in memory."""
+    j = Journal(keep_last=2, path=tmp_path / "journal.sqlite")
+    for step in range(5):
+        j.add("depth", step, bytes([step]))
+        j.add("surface", step, bytes([step]))
+    j.add("depth", 3, b"forged")
+    # Not closed: a killed manager does not close it either.
+    again = Journal(keep_last=2, path=tmp_path / "journal.sqlite")
+    for topic in ("depth", "surface"):
+        assert list(again.range(topic, 0, 9)) == list(j.range(topic, 0, 9))
+    assert again.steps("surface") == [3, 4]
+    j.close()
+    again.close()
+    (tmp_path / "bad.sqlite").write_bytes(b"not a database at all" * 100)
+    with pytest.raises(ConfigError, match="not a usable SQLite file"):
+        Journal(path=tmp_path / "bad.sqlite")
 
 
 @pytest.mark.e2e
@@ -66,3 +87,69 @@ def test_killed_modules_restart_and_the_mission_ends_as_if_nothing_happened(tmp_
     for name in killed:
         log = (tmp_path / "p" / "logs" / f"{name}.log").read_text()
         assert "resumed at step" in log and "mission done" in log, name
+
+
+@pytest.mark.e2e
+def test_a_killed_mission_manager_resumes_and_ends_as_if_nothing_happened(tmp_path: Path,
+                                                                         launch):
+    """The mission manager is SIGKILLed in the middle of a mission; its modules stop;
+    ``rovergate run --out OUT --resume`` carries on from the checkpoint, and the per-step
+    coverage equals an uninterrupted run's exactly."""
+    steps, condition, out = 14, "gated", tmp_path / "p"
+    port = free_loopback_port()
+    mission = launch("run", "--steps", str(steps), "--condition", condition, "--out", str(out),
+                     "--listen", f"tcp/127.0.0.1:{port}")
+    mission.wait_for_line(r"started sim \(pid")
+    modules = {name: mission.pid(name) for name in ("sim", "mapper", "gate", "planner")}
+    watcher = StatusWatcher(port)
+    try:
+        watcher.wait_step(7)
+        os.kill(mission.proc.pid, signal.SIGKILL)
+    finally:
+        watcher.close()
+    assert mission.finish(30) == -signal.SIGKILL
+    for name, pid in modules.items():  # they notice the manager's token vanish, and stop
+        assert wait_gone(pid, 60), f"{name} (pid {pid}) still runs without its mission"
+    assert not (out / "metrics.json").exists()
+    resumed = launch("run", "--out", str(out), "--resume")
+    assert resumed.finish(300) == 0, resumed.text[-4000:]
+    at = int(resumed.wait_for_line(r"resumed at step (\d+)").group(1))
+    assert 1 <= at <= steps, at
+    inproc = run_cli("run", "--steps", str(steps), "--condition", condition, "--in-process",
+                     "--out", str(tmp_path / "i"), timeout=300)
+    assert inproc.returncode == 0, inproc.stderr[-3000:]
+    assert (out / "coverage.csv").read_text() == (tmp_path / "i" / "coverage.csv").read_text()
+    p = json.loads((out / "metrics.json").read_text())
+    i = json.loads((tmp_path / "i" / "metrics.json").read_text())
+    assert p["suppressed_per_step"] == i["suppressed_per_step"]
+    assert [r["step"] for r in p["manager_resumes"]] == [at]
+    assert not (out / "checkpoint.pickle").exists()  # the mission ended: nothing to resume
+    again = run_cli("run", "--out", str(out), "--resume")
+    assert again.returncode == 2 and "does not exist" in again.stderr, again.stderr
+
+
+def test_resume_takes_only_the_mission_directory(tmp_path: Path):
+    r = run_cli("run", "--out", str(tmp_path), "--resume", "--steps", "5")
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1].endswith("leave out --steps"), r.stderr
+
+
+def test_a_checkpoint_that_names_code_is_refused_not_run(tmp_path: Path):
+    """The checkpoint is a pickle: one that would call a function when loaded is refused."""
+    import pickle
+
+    from mission.checkpoint import CHECKPOINT, load
+    from rovergate.errors import ConfigError
+
+    marker = tmp_path / "ran"
+
+    class Exploit:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+    (tmp_path / CHECKPOINT).write_bytes(pickle.dumps(Exploit()))
+    with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
+        load(tmp_path)
+    assert not marker.exists()
+    (tmp_path / CHECKPOINT).write_bytes(b"\x80\x05garbage")
+    with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
+        load(tmp_path)
