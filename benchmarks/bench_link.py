@@ -95,13 +95,21 @@ def bench_recovery(tmp: Path, rounds: int) -> None:
         threading.Thread(target=read, daemon=True).start()
         started.wait(120)
         watcher = StatusWatcher(port)
-        for step, name in kills.items():
-            watcher.wait_step(step, 300)
-            pid = [int(m.group(1)) for line in list(lines)
-                   if (m := re.search(rf"started {name} \(pid (\d+)\)", line))][-1]
-            os.kill(pid, signal.SIGKILL)
-        proc.wait(600)
-        watcher.close()
+        try:
+            for step, name in kills.items():
+                watcher.wait_step(step, 300)
+                pid = [int(m.group(1)) for line in list(lines)
+                       if (m := re.search(rf"started {name} \(pid (\d+)\)", line))][-1]
+                os.kill(pid, signal.SIGKILL)
+            proc.wait(600)
+        finally:
+            # Closed on this thread, whatever happened: a Zenoh session closed by a thread
+            # that outlives main() aborts the interpreter at exit ("FATAL: exception not
+            # rethrown", exit 134; an earlier version closed it in a daemon thread).
+            watcher.close()
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
         metrics = json.loads((out / "metrics.json").read_text())
         for e in metrics["restarts"]:
             ready[e["module"]].append(e["death_to_ready_s"])

@@ -161,7 +161,7 @@ def main() -> None:
     args = ap.parse_args()
     ns = args.namespace
     conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')  # a peer, as the other modules are
+    conf.insert_json5("mode", '"client"')  # a client of the mission's session, as modules are
     conf.insert_json5("connect/endpoints", json.dumps(args.connect))
     conf.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(conf)

@@ -38,13 +38,14 @@ import zenoh
 
 from mission.contact import ContactConfig, ContactPlan
 from mission.downlink import DownlinkQueue
+from rovergate.access import ground_network
 from rovergate.config import SessionConfig
 from rovergate.errors import ConfigError
 from rovergate.keys import Keys
 from rovergate.logs import log_drop
 from rovergate.messages import MessageError, encode, encode_item
 from rovergate.node import cdr_encoding, check_and_decode
-from rovergate.session import free_loopback_port, open_session
+from rovergate.session import TlsFiles, free_loopback_port, open_session
 from rovergate.types import (
     SURFACE_DTYPE,
     CommandAck,
@@ -70,6 +71,35 @@ ANY_PORT = re.compile(r":0(?=$|#)")
 """Port 0 in an endpoint (before any #-options): take a free port."""
 PORT_ATTEMPTS = 5
 """Free ports tried for an endpoint with port 0 before giving up."""
+
+
+def loopback(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (``proto/host:port``) listens on loopback only."""
+    host = endpoint.split("/", 1)[-1].split("#", 1)[0].rsplit(":", 1)[0].strip("[]")
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+def ground_tls(cfg: ContactConfig) -> TlsFiles | None:
+    """The rover's ground-link credentials (--contact.credentials), if any."""
+    if cfg.credentials is None:
+        return None
+    d = Path(cfg.credentials)
+    return TlsFiles(d / "ca.pem", d / "rover.pem", d / "rover.key")
+
+
+def check_ground_endpoints(endpoints: tuple[str, ...], authenticated: bool) -> None:
+    """With credentials every ground endpoint is TLS; without, every one is on loopback.
+    Raises ConfigError naming the first that is not."""
+    for e in endpoints:
+        if authenticated and not e.startswith("tls/"):
+            raise ConfigError(f"--contact.ground-listen {e}: with --contact.credentials the "
+                              "ground link is mutual TLS; use tls/HOST:PORT")
+        if not authenticated and not loopback(e):
+            raise ConfigError(
+                f"--contact.ground-listen {e} is beyond loopback, and the link has no "
+                "credentials: anyone who reaches it could command the rover. Create them "
+                "with `rovergate credentials --out DIR` and pass --contact.credentials "
+                "DIR/rover (with a tls/ endpoint), or listen on 127.0.0.1")
 
 
 @dataclass
@@ -131,12 +161,18 @@ class GroundBridge:
     def _open(self, base: SessionConfig) -> tuple[zenoh.Session, tuple[str, ...]]:
         """The ground-side session and the endpoints it listens on, port 0 replaced by the
         port taken."""
+        tls = ground_tls(self.cfg)
+        access = ground_network(self.cfg.ground_namespace,
+                                tuple(self.cfg.ground_stations) if tls else ())
+
         def open_on(listen: tuple[str, ...]) -> zenoh.Session:
             return open_session(SessionConfig(
                 mode="peer", listen=listen, namespace=self.cfg.ground_namespace,
-                multicast_scouting=base.multicast_scouting))
+                multicast_scouting=base.multicast_scouting), access, tls)
 
-        wanted = tuple(self.cfg.ground_listen) or (DEFAULT_GROUND_LISTEN,)
+        wanted = tuple(self.cfg.ground_listen) or (
+            DEFAULT_GROUND_LISTEN.replace("tcp/", "tls/") if tls else DEFAULT_GROUND_LISTEN,)
+        check_ground_endpoints(wanted, tls is not None)
         if not any(ANY_PORT.search(e) for e in wanted):
             try:
                 return open_on(wanted), wanted

@@ -135,6 +135,11 @@ def _refuse_owned_flags(args: list[str]) -> None:
     refuse_owned_mission_flags(args)
 
 
+def _credentials():
+    from mission.credentials import CredentialsConfig, main
+    return CredentialsConfig, main
+
+
 def _ground():
     from mission.ground import GroundConfig, main
     return GroundConfig, main
@@ -157,6 +162,8 @@ COMMANDS: dict[str, Command] = {
     "ground": Command("the ground station: shows and records the downlinked telemetry, sends "
                       "commands (pause, resume, abort, set, condition, planner) up in the "
                       "next contact window", _typed("ground", _ground)),
+    "credentials": Command("create the ground link's certificates (a CA, the rover's, a "
+                           "station's) for mutual TLS", _typed("credentials", _credentials)),
 }
 
 

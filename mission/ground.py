@@ -23,9 +23,11 @@ rover executes it at the next step boundary and downlinks a ``command_ack``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import queue
 import shlex
 import socket
 import sys
@@ -46,7 +48,7 @@ from rovergate.logs import init_logging
 from rovergate.messages import MessageError, decode_item, encode
 from rovergate.module import STOP
 from rovergate.node import cdr_encoding, check_and_decode
-from rovergate.session import open_session
+from rovergate.session import TlsFiles, open_session
 from rovergate.types import (
     CommandAck,
     DownlinkAck,
@@ -71,6 +73,9 @@ class GroundConfig:
     connect: tuple[str, ...] = ()
     """The mission manager's ground endpoints (its --contact.ground-listen), e.g.
     tcp/ROVER:7448. Given, they win over --mission."""
+    credentials: Path | None = None
+    """Directory of this station's credentials (ca.pem, station.pem, station.key; made by
+    `rovergate credentials`), for a mission whose ground link is mutual TLS."""
     namespace: str = ""
     """Prefix of the ground network's keys (the mission's --contact.ground-namespace). Empty:
     the one in the mission's ground.json, or `ground` with --connect."""
@@ -136,6 +141,25 @@ def resolve_link(cfg: GroundConfig) -> GroundConfig:
     return replace(cfg, connect=tuple(endpoints), namespace=cfg.namespace or namespace)
 
 
+def station_tls(cfg: GroundConfig) -> TlsFiles | None:
+    """The station's credentials (--credentials); ConfigError when the link needs them (a
+    tls/ endpoint) and none were given, or when given for a link without TLS."""
+    tls_link = any(e.startswith("tls/") for e in cfg.connect)
+    if cfg.credentials is None:
+        if tls_link:
+            raise ConfigError("the mission's ground link is mutual TLS "
+                              f"({', '.join(cfg.connect)}); pass --credentials DIR/station "
+                              "(made by `rovergate credentials`)")
+        return None
+    if not tls_link:
+        raise ConfigError(f"--credentials is for a tls/ link, and {', '.join(cfg.connect)} is "
+                          "not one; connect to the mission's tls/ endpoint")
+    d = Path(cfg.credentials)
+    tls = TlsFiles(d / "ca.pem", d / "station.pem", d / "station.key")
+    tls.check()
+    return tls
+
+
 def parse_command(line: str, command_id: int) -> GroundCommand:
     """A typed command line -> :class:`GroundCommand`; ValueError says what is wrong."""
     words = shlex.split(line)
@@ -195,7 +219,8 @@ class GroundStation:
         self._file = open(self.received_path, "a")  # noqa: SIM115 -- closed in close()
         self._sent = open(sent_path, "a")  # noqa: SIM115 -- closed in close()
         self.session = open_session(SessionConfig(mode="peer", connect=tuple(cfg.connect),
-                                                  namespace=cfg.namespace))
+                                                  namespace=cfg.namespace),
+                                    tls=station_tls(cfg))
         self._ack = self.session.declare_publisher(
             self.keys.key("downlink_ack"), encoding=cdr_encoding("downlink_ack"),
             congestion_control=zenoh.CongestionControl.BLOCK)
@@ -271,7 +296,8 @@ class GroundStation:
             return None
         self.next_id += 1
         # A put that no subscriber matches is lost: wait for the bridge to be on the link.
-        while not self._uplink.matching_status.matching and not STOP.is_set():
+        while not self._uplink.matching_status.matching and not STOP.is_set() \
+                and not self.rover_gone.is_set():
             time.sleep(0.05)
         self._uplink.put(encode("uplink", command))
         self._sent.write(json.dumps({"id": command.id, "verb": command.verb,
@@ -307,11 +333,14 @@ def main(cfg: GroundConfig) -> int:
     try:
         for line in cfg.commands:
             station.send(line)
+        typed: queue.Queue[str] = queue.Queue()
         if cfg.stdin and not sys.stdin.closed:
+            # The reader only reads: lines are sent from this thread, so that no thread
+            # still in Zenoh outlives the session (that aborts the interpreter at exit).
             def read_stdin() -> None:
                 for line in sys.stdin:
                     if line.strip():
-                        station.send(line)
+                        typed.put(line)
             threading.Thread(target=read_stdin, daemon=True).start()
         deadline = time.monotonic() + cfg.timeout_s if cfg.timeout_s > 0 else None
         while not STOP.is_set():
@@ -320,7 +349,8 @@ def main(cfg: GroundConfig) -> int:
                 break
             if deadline is not None and time.monotonic() > deadline:
                 break
-            time.sleep(0.05)
+            with contextlib.suppress(queue.Empty):
+                station.send(typed.get(timeout=0.05))
     finally:
         station.close()
     missing = gaps(station.seen)

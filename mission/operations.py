@@ -121,12 +121,6 @@ def choose_planner(cfg: MissionConfig, name: str) -> MissionConfig:
     return dataclasses.replace(cfg, planner=planner)
 
 
-def _loopback(endpoint: str) -> bool:
-    """Whether a Zenoh endpoint (``proto/host:port``) listens on loopback only."""
-    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
-    return host in ("localhost", "::1") or host.startswith("127.")
-
-
 class MissionControl(Protocol):
     """What ground commands act through: the process set's side of operations."""
 
@@ -179,11 +173,14 @@ class Operations:
                  windows[0] if windows else "none", plan.light_steps, c.downlink_kbps,
                  len(self.bridge.queue), self.bridge.queue.path,
                  plan.end_of_mission(cfg.steps, c.drain_steps))
-        exposed = [e for e in self.bridge.endpoints if not _loopback(e)]
-        if exposed:
-            log.warning("the ground link listens on %s, beyond loopback, and is not "
-                        "authenticated: whoever reaches it can pause, abort and reconfigure "
-                        "this mission (README, Security)", ", ".join(exposed))
+        if c.credentials is None:
+            log.warning("the ground link is not authenticated (no --contact.credentials), so "
+                        "it listens on loopback only: any process on this machine can command "
+                        "the rover (README, Security)")
+        else:
+            log.info("the ground link is mutual TLS with the credentials in %s: only a "
+                     "station whose certificate names %s may command", c.credentials,
+                     " or ".join(c.ground_stations))
         self.paused = False
         self.abort = False
         self.events_sent = 0

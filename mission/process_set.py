@@ -3,8 +3,11 @@
 :class:`ProcessSetTransport` implements :class:`mission.transport.Transport` by composing
 parts that each do one job:
 
-- a Zenoh peer session that listens on a free loopback port (plus any ``--listen`` endpoints,
-  for subscribers on other machines), and the mission's liveliness token;
+- a Zenoh peer session that listens on a Unix socket in a directory of its own, mode 0700
+  (the modules connect to it as clients; nothing else listens on the rover network), plus
+  any ``--listen`` endpoints for subscribers on other machines, which its access control
+  makes read-only (:func:`rovergate.access.rover_network`); and the mission's liveliness
+  token;
 - the :class:`~mission.inbox.Inbox` its subscriptions fill (the mission's inputs, from the
   graph);
 - the :class:`~mission.journal.JournalServer` (the past inputs a restarted module replays);
@@ -24,7 +27,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 import shlex
+import shutil
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -36,6 +41,7 @@ from mission.clock import MissionClock
 from mission.inbox import Inbox
 from mission.journal import JOURNAL, Journal, JournalServer
 from mission.supervisor import ProcessSupervisor, RestartEvent
+from rovergate.access import MODULE_PROTOCOL, rover_network
 from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
 from rovergate.graph import LAUNCHED, MODULES, stage_module
@@ -44,8 +50,11 @@ from rovergate.logs import log_drop
 from rovergate.messages import MessageError, prepare
 from rovergate.module import STOP
 from rovergate.node import check_and_decode
-from rovergate.session import free_loopback_port, open_session
+from rovergate.session import open_session
 from rovergate.types import MissionStatus, StepTiming
+
+UNIX_PATH_MAX = 107
+"""Longest path of a Unix socket (sun_path, less its terminating zero)."""
 
 log = logging.getLogger("rovergate.mission")
 
@@ -78,32 +87,39 @@ class ProcessSetTransport:
         self.out = out
         self._resume = resume
         self.keys = Keys(cfg.session.namespace)
-        self.endpoint, self.session = self._open_session(cfg)
+        self._sockets = Path(tempfile.mkdtemp(prefix="rovergate-"))  # mode 0700
+        try:
+            self.endpoint, self.session = self._open_session(cfg, self._sockets)
+        except BaseException:
+            shutil.rmtree(self._sockets, ignore_errors=True)
+            raise
+        log.info("rover network: the modules connect to %s; %s", self.endpoint,
+                 f"read-only for other machines on {', '.join(cfg.session.listen)}"
+                 if cfg.session.listen else "no --listen endpoint for other machines")
         try:
             self._declare(cfg, out)
         except BaseException:
             self.session.close()
+            shutil.rmtree(self._sockets, ignore_errors=True)
             raise
 
     @staticmethod
-    def _open_session(cfg: MissionConfig) -> tuple[str, zenoh.Session]:
-        """The mission's peer session on a free loopback port (the modules connect to it),
-        plus any ``--listen`` endpoints. A port free a moment ago may be taken by another
-        mission starting at the same moment: then another one (zenoh does not say which port
-        it bound for port 0)."""
-        failure = ""
-        for _ in range(5):
-            endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-            session_cfg = dataclasses.replace(cfg.session, mode="peer", wait_for_peers=0,
-                                              listen=(endpoint, *cfg.session.listen))
-            try:
-                return endpoint, open_session(session_cfg)
-            except ConfigError as exc:
-                if cfg.session.listen:  # a --listen endpoint the user chose: say so at once
-                    raise
-                failure = str(exc)
-        raise ConfigError(f"no free loopback port for the mission's session in 5 tries "
-                          f"(last: {failure})")
+    def _open_session(cfg: MissionConfig, sockets: Path) -> tuple[str, zenoh.Session]:
+        """The mission's peer session on a Unix socket in ``sockets`` (the modules connect to
+        it), plus any ``--listen`` endpoints, under the rover network's access control."""
+        endpoint = f"{MODULE_PROTOCOL}/{sockets / 'mission.sock'}"
+        if len(str(sockets / "mission.sock")) > UNIX_PATH_MAX:
+            raise ConfigError(f"the temporary directory {sockets.parent} has too long a path "
+                              f"for a Unix socket (at most {UNIX_PATH_MAX} bytes); set TMPDIR "
+                              "to a shorter one, e.g. TMPDIR=/tmp")
+        for given in cfg.session.listen:
+            if given.split("/", 1)[0] == MODULE_PROTOCOL:
+                raise ConfigError(f"--listen {given}: {MODULE_PROTOCOL} is the modules' own "
+                                  "transport, with full rights; other machines subscribe over "
+                                  "tcp/ADDRESS:PORT (read-only)")
+        session_cfg = dataclasses.replace(cfg.session, mode="peer", wait_for_peers=0,
+                                          listen=(endpoint, *cfg.session.listen))
+        return endpoint, open_session(session_cfg, rover_network(cfg.session.namespace))
 
     def _declare(self, cfg: MissionConfig, out: Path) -> None:
         journal_file = out / JOURNAL
@@ -238,9 +254,11 @@ class ProcessSetTransport:
             # A planner of the user's own: it gets the endpoint and the namespace.
             return [*program_argv(cfg.planner.command), "--connect", self.endpoint,
                     "--namespace", cfg.session.namespace]
+        # A client of the mission's session, listening on nothing: every message between
+        # modules passes the one session whose access control governs the network.
         cmd = [sys.executable, "-m", "mission.cli", name, "--config", str(self.config_path),
-               "--mode", "peer", "--connect", self.endpoint, "--listen", "tcp/127.0.0.1:0",
-               "--namespace", cfg.session.namespace, "--wait-for-peers", str(len(LAUNCHED))]
+               "--mode", "client", "--connect", self.endpoint, "--listen",  # (none)
+               "--namespace", cfg.session.namespace, "--wait-for-peers", "1"]
         if resume_step is not None:
             cmd += ["--resume-step", str(resume_step)]
         return cmd
@@ -377,6 +395,7 @@ class ProcessSetTransport:
                     self._alive_sub.undeclare()
                 finally:
                     self.session.close()
+                    shutil.rmtree(self._sockets, ignore_errors=True)
         bad = {n: c for n, c in codes.items() if c != 0}
         if bad and not failed:
             raise MissionFailed("modules did not exit cleanly: " + ", ".join(

@@ -48,7 +48,12 @@ def check_runnable(cfg: MissionConfig) -> None:
         raise ConfigError("--planner.command runs a planner program, which needs the "
                           "process set; leave out --in-process")
     if cfg.contact.enabled and not cfg.in_process:
+        from mission.bridge import check_ground_endpoints, ground_tls
         from mission.contact import ContactPlan, ContactPlanError
+        tls = ground_tls(cfg.contact)
+        if tls is not None:
+            tls.check()
+        check_ground_endpoints(tuple(cfg.contact.ground_listen), tls is not None)
         try:
             ContactPlan(cfg.contact).end_of_mission(cfg.steps, cfg.contact.drain_steps)
         except ContactPlanError as exc:

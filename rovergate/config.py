@@ -297,12 +297,19 @@ class ContactConfig:
     """Most points in one downlinked map snapshot (the observed surface, thinned evenly)."""
     ground_listen: tuple[str, ...] = ()
     """Endpoints where the ground network listens (the mission manager's ground-side session).
-    Empty: a free port on 127.0.0.1 (port 0 in any endpoint also takes a free port), so that
-    missions on one machine never collide. The endpoints opened go into OUT/ground.json while
-    the link is up, where `rovergate ground --mission OUT` finds them. tcp/0.0.0.0:7448 lets
-    another machine in (`rovergate ground --connect tcp/ROVER:7448`); the link is not
-    authenticated yet (README, Security), and the mission warns at start when an endpoint is
-    not on loopback."""
+    Empty: a free port on 127.0.0.1 (tls/127.0.0.1 with --contact.credentials; port 0 in any
+    endpoint also takes a free port), so that missions on one machine never collide. The
+    endpoints opened go into OUT/ground.json while the link is up, where `rovergate ground
+    --mission OUT` finds them. Without credentials every endpoint must be on loopback; with
+    them, every endpoint is tls/ (e.g. tls/0.0.0.0:7448 lets another machine's station in:
+    `rovergate ground --credentials DIR/station --connect tls/ROVER:7448`)."""
+    credentials: Path | None = None
+    """Directory of the rover's ground-link credentials (ca.pem, rover.pem, rover.key; make
+    them with `rovergate credentials`): the link is then mutual TLS, and only a station with
+    a certificate from the same CA naming one of --contact.ground-stations may command.
+    Without it the link is not authenticated and listens on loopback only."""
+    ground_stations: tuple[str, ...] = ("station",)
+    """Certificate common names of the stations admitted on the link (with credentials)."""
     ground_namespace: str = "ground"
     """Prefix of the ground network's keys."""
     drain_steps: int = 200
@@ -458,7 +465,7 @@ def from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
             hint = typing.get_args(hint)[0]
         if dataclasses.is_dataclass(hint):
             kwargs[key] = from_dict(hint, value, f"{where}.{key}")
-        elif hint is Path:
+        elif hint is Path or (hint == Path | None and value is not None):
             kwargs[key] = Path(value)
         elif typing.get_origin(hint) is tuple:
             kwargs[key] = tuple(value)

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import json
 import socket
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -14,25 +17,67 @@ from rovergate.config import SessionConfig
 from rovergate.errors import ConfigError
 
 
-def zenoh_config(cfg: SessionConfig) -> zenoh.Config:
-    """The zenoh.Config of a :class:`SessionConfig`."""
+@dataclass(frozen=True)
+class TlsFiles:
+    """One party's mutual-TLS credentials (``rovergate credentials`` writes them): the
+    mission's certificate authority, and this party's certificate and private key (PEM)."""
+
+    ca: Path
+    cert: Path
+    key: Path
+
+    def check(self) -> None:
+        """ConfigError naming the first file that is missing or unreadable."""
+        for path in (self.ca, self.cert, self.key):
+            try:
+                with open(path, "rb") as f:
+                    if b"-----BEGIN" not in f.read(4096):
+                        raise ConfigError(f"{path} is not a PEM file; create the credentials "
+                                          "with `rovergate credentials --out DIR`")
+            except OSError as exc:
+                raise ConfigError(f"cannot read the credential {path} ({exc.strerror}); "
+                                  "create them with `rovergate credentials --out DIR`") from None
+
+
+def zenoh_config(cfg: SessionConfig, access_control: dict[str, Any] | None = None,
+                 tls: TlsFiles | None = None) -> zenoh.Config:
+    """The zenoh.Config of a :class:`SessionConfig`, with an ``access_control`` section
+    (:mod:`rovergate.access`) and mutual-TLS credentials when given."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(cfg.mode))
     conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
     conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    if access_control is not None:
+        conf.insert_json5("access_control", json.dumps(access_control))
+    if tls is not None:
+        tls.check()
+        link = {"root_ca_certificate": str(tls.ca), "enable_mtls": True}
+        if cfg.listen:
+            link |= {"listen_certificate": str(tls.cert), "listen_private_key": str(tls.key)}
+        if cfg.connect:
+            link |= {"connect_certificate": str(tls.cert), "connect_private_key": str(tls.key),
+                     "verify_name_on_connect": True}
+        conf.insert_json5("transport/link/tls", json.dumps(link))
+    if tls is not None and cfg.connect:
+        # A peer whose certificate is refused fails now, with the reason, instead of
+        # retrying in the background as if the link were slow.
+        conf.insert_json5("connect/timeout_ms", "15000")
+        conf.insert_json5("connect/exit_on_failure", "true")
     return conf
 
 
-def open_session(cfg: SessionConfig) -> zenoh.Session:
+def open_session(cfg: SessionConfig, access_control: dict[str, Any] | None = None,
+                 tls: TlsFiles | None = None) -> zenoh.Session:
     """Open a Zenoh session; a bad endpoint gives one line saying which and how to fix it."""
     try:
-        return zenoh.open(zenoh_config(cfg))
+        return zenoh.open(zenoh_config(cfg, access_control, tls))
     except Exception as exc:
         raise ConfigError(
             f"could not open a Zenoh session (mode={cfg.mode}, listen={list(cfg.listen)}, "
             f"connect={list(cfg.connect)}): {exc}. Check the endpoints: they look like "
-            "tcp/127.0.0.1:7447, and a listen port must be free.") from None
+            "tcp/127.0.0.1:7447, a listen port must be free, and a tls/ endpoint needs the "
+            "credentials its peer trusts.") from None
 
 
 def free_loopback_port() -> int:

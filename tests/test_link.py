@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -12,17 +13,19 @@ from pathlib import Path
 
 import pytest
 import tyro
+import zenoh
 from conftest import ROVERGATE, Mission, StatusWatcher, run_cli
 
-from mission.bridge import LINK_FILE
+from mission.bridge import LINK_FILE, check_ground_endpoints, loopback
 from mission.contact import ContactPlan, ContactPlanError
 from mission.downlink import DownlinkQueue
 from mission.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
-from mission.operations import CommandError, _loopback, apply_settings, choose_planner
+from mission.operations import CommandError, apply_settings, choose_planner
 from mission.process_set import program_argv
 from mission.run import check_runnable
 from rovergate.config import ContactConfig, MissionConfig, check_values
 from rovergate.errors import ConfigError
+from rovergate.node import cdr_encoding
 
 
 def test_periodic_and_explicit_windows():
@@ -351,16 +354,20 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 class LinkedMission:
-    """A process-set mission with a ground station beside it (found through OUT/ground.json),
-    and the mission clock's ticks."""
+    """A process-set mission with a ground station beside it (found through OUT/ground.json)
+    on the authenticated link (mutual TLS, credentials made for the test), and the mission
+    clock's ticks."""
 
     def __init__(self, tmp_path: Path, *flags: str, steps: int) -> None:
+        from mission.credentials import CredentialsConfig, create
         from rovergate.session import free_loopback_port
         self.port = free_loopback_port()
         self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
+        self.credentials = create(CredentialsConfig(out=tmp_path / "credentials"))
         # The ground link takes a free port of its own and says which in OUT/ground.json.
         self.mission = Mission(["run", "--steps", str(steps), "--no-progress", "--out",
-                                str(self.out), "--listen", f"tcp/127.0.0.1:{self.port}", *flags])
+                                str(self.out), "--listen", f"tcp/127.0.0.1:{self.port}",
+                                "--contact.credentials", str(self.credentials["rover"]), *flags])
         self.ground: Mission | None = None
         self.watcher: StatusWatcher | None = None
         try:
@@ -370,9 +377,11 @@ class LinkedMission:
             assert link["pid"] == self.mission.proc.pid and \
                 link["ground_namespace"] == "ground" and link["rover_namespace"] == "rover", link
             assert f"link to the ground on {link['endpoints'][0]} " in line
+            assert link["endpoints"][0].startswith("tls/127.0.0.1:"), link
             self.watcher = StatusWatcher(self.port)
             self.ground = Mission(["ground", "--mission", str(self.out), "--out",
-                                   str(self.ground_out)], stdin=True)
+                                   str(self.ground_out), "--credentials",
+                                   str(self.credentials["station"])], stdin=True)
         except BaseException:
             self.close()
             raise
@@ -590,9 +599,105 @@ def test_two_missions_with_default_links_run_side_by_side(tmp_path: Path):
     assert not any((tmp_path / name / LINK_FILE).exists() for name in ("one", "two"))
 
 
-@pytest.mark.parametrize("endpoint, loopback", [
+@pytest.mark.parametrize("endpoint, on_loopback", [
     ("tcp/127.0.0.1:0", True), ("tcp/[::1]:0", True), ("tcp/localhost:0", True),
     ("tcp/0.0.0.0:0", False), ("tcp/10.0.0.2:0", False), ("tcp/[::]:0", False),
 ])
-def test_the_mission_knows_which_ground_endpoints_leave_loopback(endpoint, loopback):
-    assert _loopback(endpoint) is loopback
+def test_without_credentials_the_ground_link_stays_on_loopback(endpoint, on_loopback):
+    assert loopback(endpoint) is on_loopback
+    if on_loopback:
+        check_ground_endpoints((endpoint,), authenticated=False)
+    else:
+        with pytest.raises(ConfigError, match="beyond loopback.*rovergate credentials"):
+            check_ground_endpoints((endpoint,), authenticated=False)
+    with pytest.raises(ConfigError, match="use tls/HOST:PORT"):
+        check_ground_endpoints((endpoint,), authenticated=True)
+    check_ground_endpoints((endpoint.replace("tcp/", "tls/"),), authenticated=True)
+
+
+@pytest.mark.e2e
+def test_without_the_missions_credentials_no_command_reaches_the_rover(tmp_path: Path):
+    """The ground link is mutual TLS under access control. Plain TCP, TLS without a client
+    certificate, and a certificate from another CA get no link at all; a certificate the
+    mission's CA signed for another name than the station's gets a link, and nothing it
+    sends passes. Each one sends `planner cmd sh -c 'touch FILE' sh` and `pause` while the
+    window is open: FILE never appears, no command reaches the rover, and the mission's
+    numbers are a clean run's."""
+    from mission.credentials import CredentialsConfig, create
+    from rovergate.config import SessionConfig
+    from rovergate.keys import Keys
+    from rovergate.messages import encode
+    from rovergate.session import TlsFiles, open_session, zenoh_config
+    from rovergate.types import GroundCommand
+
+    creds = create(CredentialsConfig(out=tmp_path / "c"))
+    foreign = create(CredentialsConfig(out=tmp_path / "foreign"))  # another CA
+    mallory = create(CredentialsConfig(out=tmp_path / "mallory", ca=creds["ca"],
+                                       station_name="mallory"))
+    steps, out, marker = 20, tmp_path / "m", tmp_path / "FILE"
+    mission = Mission(["run", "--steps", str(steps), "--no-progress", "--out", str(out),
+                       "--contact.credentials", str(creds["rover"]),
+                       "--contact.windows", f"0+{steps}"])
+    keys = Keys("ground")
+    sessions = []
+    try:
+        mission.wait_for_line("link to the ground on")
+        endpoint = json.loads((out / LINK_FILE).read_text())["endpoints"][0]
+        plain = endpoint.replace("tls/", "tcp/")
+
+        def files(d: Path, name: str) -> TlsFiles:
+            return TlsFiles(d / "ca.pem", d / f"{name}.pem", d / f"{name}.key")
+        # A link, and nothing passes: the rover's access control admits only `station`.
+        intruder = open_session(SessionConfig(mode="peer", connect=(endpoint,)),
+                                tls=files(mallory["station"], "station"))
+        sessions.append(intruder)
+        assert len(list(intruder.info.peers_zid())) == 1
+        # No link at all: the session either fails to open or opens with no peer.
+        unlinked = open_session(SessionConfig(mode="peer", connect=(plain,)))
+        sessions.append(unlinked)
+        assert list(unlinked.info.peers_zid()) == []
+        with pytest.raises(ConfigError):
+            open_session(SessionConfig(mode="client", connect=(plain,)))
+        no_cert = zenoh.Config()
+        no_cert.insert_json5("mode", '"client"')
+        no_cert.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        no_cert.insert_json5("transport/link/tls", json.dumps(
+            {"root_ca_certificate": str(creds["station"] / "ca.pem")}))
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(no_cert)
+        other_ca = zenoh_config(SessionConfig(mode="peer", connect=(endpoint,)),
+                                tls=files(foreign["station"], "station"))
+        other_ca.insert_json5("connect/timeout_ms", "2000")
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(other_ca)
+        assert mission.proc.poll() is None, "the mission ended before the attempts did"
+        heard: list = []
+        intruder.declare_subscriber(keys.key("downlink"), heard.append)
+        for session in (intruder, unlinked):
+            session.liveliness().declare_token(keys.alive("station"))
+        sent = 0
+        while mission.proc.poll() is None and sent < 2000:
+            for session in (intruder, unlinked):
+                for i, (verb, args) in enumerate((
+                        ("planner", ["cmd", f"sh -c 'touch {marker}' sh"]),
+                        ("pause", []), ("abort", []))):
+                    session.put(keys.key("uplink"), encode("uplink", GroundCommand(
+                        sent + i + 1, verb, args)), encoding=cdr_encoding("uplink"))
+            sent += 3
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                mission.proc.wait(0.02)  # paced, until the mission ends
+        assert mission.finish(240) == 0, mission.text[-4000:]
+    finally:
+        for session in sessions:
+            session.close()
+        mission.kill()
+    assert sent >= 30, sent
+    assert not marker.exists()
+    assert heard == []  # not even the downlink
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["state"] == "done" and metrics["link"]["commands"] == []
+    assert metrics["link"]["dropped_ground_messages"] == 0  # denied before the bridge
+    clean = run_cli("run", "--steps", str(steps), "--in-process", "--out", str(tmp_path / "i"),
+                    timeout=300)
+    assert clean.returncode == 0, clean.stderr[-3000:]
+    assert (out / "coverage.csv").read_text() == (tmp_path / "i" / "coverage.csv").read_text()
