@@ -78,8 +78,9 @@ class Journal:
                 rows = self._db.execute("SELECT topic, step, payload FROM entries").fetchall()
             except sqlite3.DatabaseError as exc:
                 raise ConfigError(f"the mission's journal {path} is not a usable SQLite file "
-                                  f"({exc}); a mission cannot resume without it: start it "
-                                  "again without --resume, in a new --out") from None
+                                  f"({exc}); give --out a directory this user can write (a "
+                                  "mission cannot --resume without its journal: start it "
+                                  "again in a new --out)") from None
             for topic, step, payload in rows:
                 if topic in self._entries:
                     self._entries[topic][int(step)] = Entry(int(step), bytes(payload))

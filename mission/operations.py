@@ -145,6 +145,9 @@ class MissionControl(Protocol):
         """Restart every module that died; True when one was."""
         ...
 
+    rollbacks: list[str]
+    """Reconfigurations undone because their modules kept dying, with the reason."""
+
     def reconfigure(self, cfg: MissionConfig, modules: list[str], step: int) -> None:
         """Restart ``modules`` with ``cfg`` at the boundary before ``step``; if they do not
         come up, restart them with the previous configuration and raise
@@ -184,6 +187,7 @@ class Operations:
         self.paused = False
         self.abort = False
         self.events_sent = 0
+        self.rollbacks_sent = 0
         self.commands: list[dict[str, Any]] = []
         self._executed: set[int] = set()
         self.reconfigurations: list[dict[str, Any]] = []
@@ -282,6 +286,12 @@ class Operations:
             self.bridge.event(e.step, "module-restarted",
                               f"{e.module} {e.reason}; restarted, resuming at step {e.step}")
         self.events_sent = len(events)
+        for why in self.control.rollbacks[self.rollbacks_sent:]:
+            step = self.control.restart_events[-1].step if events else 0
+            self.reconfigurations.append({"step": step, "verb": "rollback", "args": [],
+                                          "detail": why})
+            self.bridge.event(step, "reconfiguration-rolled-back", why)
+        self.rollbacks_sent = len(self.control.rollbacks)
 
     # --- telemetry ------------------------------------------------------------------------
 
@@ -339,7 +349,7 @@ class Operations:
         self.bridge.restore(snap["bridge"])
         # Restart events of the manager that died were reported by it (or are in its
         # record); the new supervisor counts its own from 0.
-        self.events_sent = 0
+        self.events_sent = self.rollbacks_sent = 0
 
     def close(self) -> None:
         self.bridge.close()

@@ -86,6 +86,7 @@ class ProcessSetTransport:
         self._cfg = cfg
         self.out = out
         self._resume = resume
+        out.mkdir(parents=True, exist_ok=True)
         self.keys = Keys(cfg.session.namespace)
         self._sockets = Path(tempfile.mkdtemp(prefix="rovergate-"))  # mode 0700
         try:
@@ -134,6 +135,9 @@ class ProcessSetTransport:
         self._timings: dict[tuple[str, int], StepTiming] = {}
         self._dropped = 0
         self._restarts_before: list[dict[str, Any]] = []
+        self._undo: tuple[MissionConfig, list[str]] | None = None
+        self.rollbacks: list[str] = []
+        """Reconfigurations undone after their modules kept dying, with the reason."""
         cv = self.inbox.cv
         self.journal_server = JournalServer(self.session, self.keys, self.journal, cv)
         self.clock = MissionClock(self.session, self.keys, self.journal, cv)
@@ -173,9 +177,10 @@ class ProcessSetTransport:
         then waiting for step ``step``'s inputs); they rebuild their state from the journal.
         If one of them exits or shows no liveliness token within ``ready_timeout_s``, they
         are restarted with the previous configuration and :class:`ReconfigurationFailed`
-        says why: a swap whose module does not come up costs the mission a few seconds. (One
-        that comes up and fails later is restarted like any crashed module, at most
-        ``max_restarts`` times, with the new configuration.)"""
+        says why: a swap whose module does not come up costs the mission a few seconds. One
+        that comes up and dies later is restarted like any crashed module; once it has died
+        more than ``max_restarts`` times, the modules of the reconfiguration are restarted on
+        the previous configuration instead of the mission failing (:attr:`rollbacks`)."""
         previous = self._cfg
         if step > 0:
             # The boundary comes once the simulator's step - 1 is in; the modules downstream
@@ -188,6 +193,7 @@ class ProcessSetTransport:
                        self._cfg.step_timeout_s)
         try:
             self._restart_with(cfg, modules, step, new=True)
+            self._undo = (previous, list(modules))
         except MissionFailed as exc:
             why = str(exc).splitlines()[0]
             log.warning("%s did not come up with the new configuration (%s); restarting with "
@@ -269,8 +275,34 @@ class ProcessSetTransport:
             # Resume at the last step whose output the mission has seen, redone: whatever of
             # it reached others again is a duplicate of the same bytes, which they ignore.
             step = max(0, self.inbox.last_seen.get(MODULES[name].progress, 0))
-            self.supervisor.restart(name, reason, step)
+            try:
+                self.supervisor.restart(name, reason, step)
+            except MissionFailed:
+                if self._undo is None or name not in self._undo[1]:
+                    raise
+                self._roll_back(name, reason)
         return bool(dead)
+
+    def _roll_back(self, name: str, reason: str) -> None:
+        """``name``, restarted on the latest ground reconfiguration, died once too often:
+        every module of that reconfiguration restarts on the configuration before it, each
+        redoing the last step the mission saw of it (a ground command never ends the
+        mission)."""
+        previous, modules = self._undo
+        self._undo = None
+        why = (f"{name} {reason} more than --max-restarts {self._cfg.max_restarts} times "
+               f"with the new configuration; {', '.join(modules)} restarted with the previous "
+               "one")
+        log.warning("reconfiguration rolled back: %s", why)
+        self.rollbacks.append(why)
+        self._cfg = previous
+        self._configs += 1
+        self.config_path = self.out / f"config.{self._configs}.json"
+        save_config(previous, self.config_path)
+        for m in modules:
+            step = max(0, self.inbox.last_seen.get(MODULES[m].progress, 0))
+            self.supervisor.restart(m, f"rolled back ({reason})" if m == name else
+                                    "rolled back", step, limit=False)
 
     def _wait(self, ready: Callable[[], bool], what: str, timeout_s: float,
               restart: bool = True, exits_fail: tuple[str, ...] | list[str] = ()) -> None:

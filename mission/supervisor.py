@@ -41,6 +41,8 @@ class RestartEvent:
     """When the restarted module's liveliness token came back."""
     resumed_s: float | None = None
     """When the loop resumed: the restarted module's first output came in."""
+    counted: bool = True
+    """Whether it counts against --max-restarts (a rollback's restart does not)."""
 
     def as_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -143,16 +145,19 @@ class ProcessSupervisor:
                     out.append((name, "its liveliness token vanished"))
         return out
 
-    def restart(self, name: str, reason: str, step: int) -> RestartEvent:
-        """Replace a dead module with one that resumes at ``step``; raises
-        :class:`MissionFailed` once it has died more than ``max_restarts`` times."""
+    def restart(self, name: str, reason: str, step: int, limit: bool = True) -> RestartEvent:
+        """Replace a dead (or live) module with one that resumes at ``step``; raises
+        :class:`MissionFailed` once it has died more than ``max_restarts`` times (unless not
+        ``limit``: a rollback to the configuration it last ran well on)."""
         died = self.elapsed()
         p = self.procs[name]
         if p.poll() is None:
             p.kill()
             p.wait()
-        restarts = 1 + sum(e.module == name for e in self.events)
-        if restarts > self.max_restarts:
+        mine = [e for e in self.events if e.module == name]
+        since = max((i for i, e in enumerate(mine) if not e.counted), default=-1)
+        restarts = 1 + sum(e.counted for e in mine[since + 1:])  # since the last rollback
+        if limit and restarts > self.max_restarts:
             raise MissionFailed(
                 f"module {name!r} {reason} during the mission, after {restarts - 1} "
                 f"restarts (--max-restarts {self.max_restarts}); its log is "
@@ -160,7 +165,7 @@ class ProcessSupervisor:
         log.warning("module %s %s at step %d; the rover holds still while it restarts "
                     "(restart %d of at most %d)", name, reason, step, restarts,
                     self.max_restarts)
-        event = RestartEvent(name, step, reason, died)
+        event = RestartEvent(name, step, reason, died, counted=limit)
         self.events.append(event)
         self.resuming[name] = event
         self._respawn(name, step)

@@ -543,6 +543,48 @@ def test_a_swap_that_does_not_come_up_is_rolled_back(tmp_path: Path):
     assert metrics["coverage"] == i["coverage"]
 
 
+#: A planner program that comes up (its liveliness token) and dies a moment later.
+_FLAKY = """
+import json, sys, time, zenoh
+arg = sys.argv.index
+conf = zenoh.Config()
+conf.insert_json5("mode", '"client"')
+conf.insert_json5("connect/endpoints", json.dumps([sys.argv[arg("--connect") + 1]]))
+session = zenoh.open(conf)
+token = session.liveliness().declare_token(sys.argv[arg("--namespace") + 1] + "/alive/planner")
+time.sleep(1.0)
+sys.exit(4)
+"""
+
+
+@pytest.mark.e2e
+def test_a_swap_that_comes_up_and_keeps_dying_is_rolled_back(tmp_path: Path):
+    """A planner program that comes up and then dies, again after each restart: once it has
+    used its restarts, the planner is rolled back to the built-in one, the mission goes on to
+    its end, and the ground hears why."""
+    flaky = tmp_path / "flaky.py"
+    flaky.write_text(_FLAKY)
+    steps = 12
+    m = LinkedMission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
+                      "--contact.light-time-s", "0", "--max-restarts", "1",
+                      "--planner.programs", f"flaky=python {flaky}", steps=steps)
+    m.wait_step(3)
+    m.command("planner flaky")
+    metrics, rows, _ = m.finish()
+    (command,) = metrics["link"]["commands"]
+    assert command["state"] == "executed", command  # it did come up
+    rolled = [r for r in metrics["link"]["reconfigurations"] if r["verb"] == "rollback"]
+    assert len(rolled) == 1 and "planner exited with code 4" in rolled[0]["detail"], rolled
+    assert "restarted with the previous one" in rolled[0]["detail"]
+    events = [(r["event"], r.get("detail", "")) for r in rows if r["kind"] == "event"]
+    assert any(e == "reconfiguration-rolled-back" and "code 4" in d for e, d in events), events
+    assert metrics["state"] == "done" and len(metrics["coverage"]) == steps + 1
+    assert [r["module"] for r in metrics["restarts"]] == ["planner", "planner"], \
+        metrics["restarts"]
+    config = json.loads(sorted((tmp_path / "m").glob("config.*.json"))[-1].read_text())
+    assert config["planner"]["command"] == "", config["planner"]
+
+
 @pytest.mark.e2e
 def test_condition_change_pause_resume_and_abort_from_the_ground(tmp_path: Path):
     """The mission starts under obs; the ground switches it to the gated filter (the mapper

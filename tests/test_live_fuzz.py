@@ -150,6 +150,7 @@ def test_a_remote_client_cannot_drive_the_mission(tmp_path: Path):
         attacker.close()
         watcher.close()
         mission.kill()
+    print(f"forged messages sent from --listen: {sent}")  # the README's figure (pytest -s)
     assert sent > 500, sent
     assert not [k for k, _ in read if "/truth/" in k], read
     assert any("/mission/journal/" in k for k, _ in read), read  # reading works
