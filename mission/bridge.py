@@ -22,6 +22,7 @@ while the mission is paused or drains its telemetry after the last step.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 import os
@@ -74,9 +75,15 @@ PORT_ATTEMPTS = 5
 
 
 def loopback(endpoint: str) -> bool:
-    """Whether a Zenoh endpoint (``proto/host:port``) listens on loopback only."""
+    """Whether a Zenoh endpoint (``proto/host:port``) listens on loopback only: a loopback
+    address, or ``localhost`` (any other name may resolve anywhere)."""
     host = endpoint.split("/", 1)[-1].split("#", 1)[0].rsplit(":", 1)[0].strip("[]")
-    return host in ("localhost", "::1") or host.startswith("127.")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def ground_tls(cfg: ContactConfig) -> TlsFiles | None:
@@ -87,9 +94,14 @@ def ground_tls(cfg: ContactConfig) -> TlsFiles | None:
     return TlsFiles(d / "ca.pem", d / "rover.pem", d / "rover.key")
 
 
-def check_ground_endpoints(endpoints: tuple[str, ...], authenticated: bool) -> None:
-    """With credentials every ground endpoint is TLS; without, every one is on loopback.
-    Raises ConfigError naming the first that is not."""
+def check_ground_endpoints(endpoints: tuple[str, ...], authenticated: bool,
+                           stations: tuple[str, ...] = ("station",)) -> None:
+    """With credentials every ground endpoint is TLS and some station is named; without,
+    every endpoint is on loopback. Raises ConfigError naming the first fault."""
+    if authenticated and not [s for s in stations if s.strip()]:
+        raise ConfigError("--contact.ground-stations is empty: with --contact.credentials, "
+                          "name the certificate common names of the stations that may "
+                          "command (default: station)")
     for e in endpoints:
         if authenticated and not e.startswith("tls/"):
             raise ConfigError(f"--contact.ground-listen {e}: with --contact.credentials the "
@@ -172,7 +184,7 @@ class GroundBridge:
 
         wanted = tuple(self.cfg.ground_listen) or (
             DEFAULT_GROUND_LISTEN.replace("tcp/", "tls/") if tls else DEFAULT_GROUND_LISTEN,)
-        check_ground_endpoints(wanted, tls is not None)
+        check_ground_endpoints(wanted, tls is not None, tuple(self.cfg.ground_stations))
         if not any(ANY_PORT.search(e) for e in wanted):
             try:
                 return open_on(wanted), wanted

@@ -15,11 +15,14 @@ On ``--resume`` the manager loads them, starts every module again at the step be
 checkpoint's (each redoes it from the journal, deterministically, as a module restarted after
 its own crash does) and runs the loop on from the checkpoint's step. The checkpoint is read
 with an unpickler that builds only this project's data classes, numpy arrays and Python's
-plain types: a file that names anything else is refused, not executed.
+plain types: loading a file that names anything else refuses it, and runs nothing. (The
+checkpoint is as trusted as the rest of ``OUT``: it holds the mission's configuration, and a
+configuration names the programs a mission runs.)
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 import pickle
@@ -66,6 +69,12 @@ def save(state: LoopState, out: Path) -> None:
     os.replace(tmp, path)
 
 
+def remove(out: Path) -> None:
+    """Remove the checkpoint, and any temp file a killed manager left half written."""
+    for path in [Path(out) / CHECKPOINT, *Path(out).glob(f".{CHECKPOINT}.tmp-*")]:
+        path.unlink(missing_ok=True)
+
+
 _BUILTINS = frozenset({"list", "dict", "set", "frozenset", "tuple", "str", "int", "float",
                        "bool", "bytes", "bytearray", "complex", "slice", "range"})
 _NUMPY = frozenset({("numpy", "ndarray"), ("numpy", "dtype"),
@@ -82,6 +91,9 @@ class _Unpickler(pickle.Unpickler):
     """Builds plain data only: the project's classes, numpy arrays, Python's containers."""
 
     def find_class(self, module: str, name: str) -> Any:
+        if "." in name:  # pickle resolves dotted names: mission.x + subprocess.Popen
+            raise pickle.UnpicklingError(f"it names {module}.{name}, which a checkpoint "
+                                         "never holds")
         if module == "builtins" and name in _BUILTINS:
             return super().find_class(module, name)
         if (module, name) in _NUMPY or (module == "copyreg" and name == "_reconstructor"):
@@ -90,7 +102,9 @@ class _Unpickler(pickle.Unpickler):
             return super().find_class(module, name)
         if module.startswith(_OURS):
             obj = super().find_class(module, name)
-            if isinstance(obj, type):  # a class of ours; never a function
+            # A data class of ours (built without running its __init__); never a function,
+            # nor a class that does something when made.
+            if isinstance(obj, type) and dataclasses.is_dataclass(obj):
                 return obj
         raise pickle.UnpicklingError(f"it names {module}.{name}, which a checkpoint never "
                                      "holds")

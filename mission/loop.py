@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mission.checkpoint import CHECKPOINT, LoopState
+from mission.checkpoint import LoopState
+from mission.checkpoint import remove as remove_checkpoint
 from mission.checkpoint import save as save_checkpoint
 from mission.coverage import CoverageEvaluator
 from mission.evaluation import StepEvaluator, collision_class
@@ -188,5 +189,5 @@ def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
                                     if resume else None)
     factory = (lambda: Operations(transport)) if cfg.contact.enabled else None
     record = run_mission(cfg, transport, on_step, factory, checkpoint=out, resume=resume)
-    (out / CHECKPOINT).unlink(missing_ok=True)
+    remove_checkpoint(out)
     return record

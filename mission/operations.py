@@ -145,8 +145,9 @@ class MissionControl(Protocol):
         """Restart every module that died; True when one was."""
         ...
 
-    rollbacks: list[str]
-    """Reconfigurations undone because their modules kept dying, with the reason."""
+    rollbacks: list[tuple[int, str]]
+    """Reconfigurations undone because their modules kept dying or fell silent: the step
+    and the reason."""
 
     def reconfigure(self, cfg: MissionConfig, modules: list[str], step: int) -> None:
         """Restart ``modules`` with ``cfg`` at the boundary before ``step``; if they do not
@@ -286,8 +287,7 @@ class Operations:
             self.bridge.event(e.step, "module-restarted",
                               f"{e.module} {e.reason}; restarted, resuming at step {e.step}")
         self.events_sent = len(events)
-        for why in self.control.rollbacks[self.rollbacks_sent:]:
-            step = self.control.restart_events[-1].step if events else 0
+        for step, why in self.control.rollbacks[self.rollbacks_sent:]:
             self.reconfigurations.append({"step": step, "verb": "rollback", "args": [],
                                           "detail": why})
             self.bridge.event(step, "reconfiguration-rolled-back", why)

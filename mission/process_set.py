@@ -44,7 +44,7 @@ from mission.supervisor import ProcessSupervisor, RestartEvent
 from rovergate.access import MODULE_PROTOCOL, rover_network
 from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
-from rovergate.graph import LAUNCHED, MODULES, stage_module
+from rovergate.graph import LAUNCHED, MODULES, producer, stage_module
 from rovergate.keys import Keys
 from rovergate.logs import log_drop
 from rovergate.messages import MessageError, prepare
@@ -52,6 +52,17 @@ from rovergate.module import STOP
 from rovergate.node import check_and_decode
 from rovergate.session import open_session
 from rovergate.types import MissionStatus, StepTiming
+
+
+@dataclasses.dataclass
+class Reconfiguration:
+    """A ground command's reconfiguration in force: the configuration before and after it,
+    and the modules it restarted."""
+
+    before: MissionConfig
+    after: MissionConfig
+    modules: list[str]
+
 
 UNIX_PATH_MAX = 107
 """Longest path of a Unix socket (sun_path, less its terminating zero)."""
@@ -135,9 +146,11 @@ class ProcessSetTransport:
         self._timings: dict[tuple[str, int], StepTiming] = {}
         self._dropped = 0
         self._restarts_before: list[dict[str, Any]] = []
-        self._undo: tuple[MissionConfig, list[str]] | None = None
-        self.rollbacks: list[str] = []
-        """Reconfigurations undone after their modules kept dying, with the reason."""
+        self._undoable: list[Reconfiguration] = []
+        """Ground reconfigurations in force, oldest first (what a rollback undoes)."""
+        self.rollbacks: list[tuple[int, str]] = []
+        """Reconfigurations undone because their modules kept dying or fell silent: the step
+        and the reason."""
         cv = self.inbox.cv
         self.journal_server = JournalServer(self.session, self.keys, self.journal, cv)
         self.clock = MissionClock(self.session, self.keys, self.journal, cv)
@@ -193,7 +206,7 @@ class ProcessSetTransport:
                        self._cfg.step_timeout_s)
         try:
             self._restart_with(cfg, modules, step, new=True)
-            self._undo = (previous, list(modules))
+            self._undoable.append(Reconfiguration(previous, cfg, list(modules)))
         except MissionFailed as exc:
             why = str(exc).splitlines()[0]
             log.warning("%s did not come up with the new configuration (%s); restarting with "
@@ -278,31 +291,40 @@ class ProcessSetTransport:
             try:
                 self.supervisor.restart(name, reason, step)
             except MissionFailed:
-                if self._undo is None or name not in self._undo[1]:
+                if not self._roll_back(name, f"{reason} more than --max-restarts "
+                                             f"{self._cfg.max_restarts} times"):
                     raise
-                self._roll_back(name, reason)
         return bool(dead)
 
-    def _roll_back(self, name: str, reason: str) -> None:
-        """``name``, restarted on the latest ground reconfiguration, died once too often:
-        every module of that reconfiguration restarts on the configuration before it, each
-        redoing the last step the mission saw of it (a ground command never ends the
-        mission)."""
-        previous, modules = self._undo
-        self._undo = None
-        why = (f"{name} {reason} more than --max-restarts {self._cfg.max_restarts} times "
-               f"with the new configuration; {', '.join(modules)} restarted with the previous "
-               "one")
-        log.warning("reconfiguration rolled back: %s", why)
-        self.rollbacks.append(why)
-        self._cfg = previous
+    def _roll_back(self, name: str, why: str) -> bool:
+        """``name`` keeps failing (``why``) since the latest ground reconfiguration that
+        restarted it: undo that one. The settings it changed go back to what they were
+        (others, changed by later commands, stay), and every module it restarted restarts
+        again, each redoing the last step the mission saw of it. False when no
+        reconfiguration restarted ``name``: the failure is the mission's own."""
+        undo = next((r for r in reversed(self._undoable) if name in r.modules), None)
+        if undo is None:
+            return False
+        self._undoable.remove(undo)
+        cfg = self._cfg
+        for f in dataclasses.fields(cfg):
+            before, after = getattr(undo.before, f.name), getattr(undo.after, f.name)
+            if before != after and getattr(cfg, f.name) == after:
+                cfg = dataclasses.replace(cfg, **{f.name: before})
+        step = max(0, self.inbox.last_seen.get(MODULES[name].progress, 0))
+        detail = (f"{name} {why} with the new configuration; {', '.join(undo.modules)} "
+                  "restarted with the previous one")
+        log.warning("reconfiguration rolled back: %s", detail)
+        self.rollbacks.append((step, detail))
+        self._cfg = cfg
         self._configs += 1
         self.config_path = self.out / f"config.{self._configs}.json"
-        save_config(previous, self.config_path)
-        for m in modules:
-            step = max(0, self.inbox.last_seen.get(MODULES[m].progress, 0))
-            self.supervisor.restart(m, f"rolled back ({reason})" if m == name else
-                                    "rolled back", step, limit=False)
+        save_config(cfg, self.config_path)
+        for m in undo.modules:
+            self.supervisor.restart(m, f"rolled back: {why}" if m == name else "rolled back",
+                                    max(0, self.inbox.last_seen.get(MODULES[m].progress, 0)),
+                                    limit=False)
+        return True
 
     def _wait(self, ready: Callable[[], bool], what: str, timeout_s: float,
               restart: bool = True, exits_fail: tuple[str, ...] | list[str] = ()) -> None:
@@ -360,8 +382,18 @@ class ProcessSetTransport:
 
     def receive(self, name: str, step: int) -> Any:
         topic = MODULES["mission"].inputs[name].topic
-        self._wait(lambda: self.inbox.has(topic, step),
-                   f"{self.keys.key(topic)} of step {step}", self._cfg.step_timeout_s)
+        what = f"{self.keys.key(topic)} of step {step}"
+        while True:
+            try:
+                self._wait(lambda: self.inbox.has(topic, step), what, self._cfg.step_timeout_s)
+                break
+            except MissionFailed:
+                # A module the ground reconfigured that came up and then fell silent: undo
+                # that reconfiguration and wait again; any other silence ends the mission.
+                with self.inbox.cv:
+                    if not self._roll_back(producer(topic), f"sent no {what} within "
+                                           f"{self._cfg.step_timeout_s:.0f} s"):
+                        raise
         with self.inbox.cv:
             return self.inbox.pop(topic, step)
 
@@ -391,10 +423,12 @@ class ProcessSetTransport:
     # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
 
     def snapshot(self) -> dict[str, Any]:
-        """What a resumed manager's transport needs: counts and timings so far."""
+        """What a resumed manager's transport needs: counts and timings so far, the ground
+        reconfigurations that can still be undone, where the old one's socket was."""
         with self.inbox.cv:
             return {"timings": list(self._timings.values()), "dropped": self.dropped(),
-                    "restarts": self.restarts(), "configs": self._configs}
+                    "restarts": self.restarts(), "configs": self._configs,
+                    "undoable": list(self._undoable), "sockets": str(self._sockets)}
 
     def _restore(self, snap: dict[str, Any]) -> None:
         # Each module counts its drops from 0 again: the counts so far become the mission's.
@@ -403,6 +437,11 @@ class ProcessSetTransport:
         self._dropped = int(snap["dropped"])
         self._restarts_before = list(snap["restarts"])
         self._configs = int(snap["configs"])
+        self._undoable = list(snap["undoable"])
+        # The killed manager could not remove its socket's directory.
+        old = Path(snap["sockets"])
+        if old.name.startswith("rovergate-") and old.parent == self._sockets.parent:
+            shutil.rmtree(old, ignore_errors=True)
         if self._configs:  # the configuration a ground command made, as the modules read it
             self.config_path = self.out / f"config.{self._configs}.json"
 
@@ -427,6 +466,7 @@ class ProcessSetTransport:
                     self._alive_sub.undeclare()
                 finally:
                     self.session.close()
+                    self.journal.close()
                     shutil.rmtree(self._sockets, ignore_errors=True)
         bad = {n: c for n, c in codes.items() if c != 0}
         if bad and not failed:

@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
 import logging
+import os
 import sys
 from pathlib import Path
+from typing import IO
 
 from tqdm import tqdm
 
 from mapper.mapper import mission_checkpoint
-from mission.checkpoint import CHECKPOINT, LoopState
+from mission.checkpoint import LoopState
 from mission.checkpoint import load as load_checkpoint
+from mission.checkpoint import remove as remove_checkpoint
 from mission.loop import run_in_process, run_processes
 from mission.report import write_report
 from planner.planner import PLANNERS, planner_name
@@ -53,7 +57,8 @@ def check_runnable(cfg: MissionConfig) -> None:
         tls = ground_tls(cfg.contact)
         if tls is not None:
             tls.check()
-        check_ground_endpoints(tuple(cfg.contact.ground_listen), tls is not None)
+        check_ground_endpoints(tuple(cfg.contact.ground_listen), tls is not None,
+                               tuple(cfg.contact.ground_stations))
         try:
             ContactPlan(cfg.contact).end_of_mission(cfg.steps, cfg.contact.drain_steps)
         except ContactPlanError as exc:
@@ -87,17 +92,42 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
+LOCK = ".mission.lock"
+"""Held (flock) by the mission manager using a directory, for as long as its process lives:
+the kernel releases it when the process ends, SIGKILL included."""
+
+
+def hold_directory(out: Path) -> IO[str]:
+    """Take ``out`` for this process, or raise ConfigError naming the manager that has it (a
+    second mission, or a --resume of a mission still running, would share its journal)."""
+    out.mkdir(parents=True, exist_ok=True)
+    f = open(out / LOCK, "a+")  # noqa: SIM115 -- held until the process ends
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "?"
+        f.close()
+        raise ConfigError(f"another mission manager (pid {holder}) is running in {out}; wait "
+                          "for it to end, or give this mission another --out") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
+
+
 def main(cfg: MissionConfig) -> int:
     """Run one mission as configured and write its report under ``cfg.out``."""
     log = init_logging("mission")
+    lock = hold_directory(Path(cfg.out))  # noqa: F841 -- held until the process ends
     state = None
     if cfg.resume:
         cfg, state = resumed_config(cfg)
     check_runnable(cfg)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     if state is None:
-        (out / CHECKPOINT).unlink(missing_ok=True)  # another mission's, in the same --out
+        remove_checkpoint(out)  # another mission's, in the same --out
         save_config(cfg, out / "config.json")
         log.info("config (saved to %s):\n%s", out / "config.json",
                  json.dumps(to_dict(cfg), indent=1))

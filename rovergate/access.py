@@ -81,8 +81,9 @@ def rover_network(namespace: str) -> dict[str, Any]:
 
 def ground_network(namespace: str, station_names: tuple[str, ...] = ()) -> dict[str, Any]:
     """The ``access_control`` section of the bridge's session. ``station_names``: the
-    certificate common names of the stations (mutual TLS); empty: any link (the endpoint is
-    then on loopback only)."""
+    certificate common names of the stations (mutual TLS); empty: any link (only for a link
+    without credentials, which listens on loopback only:
+    :func:`mission.bridge.check_ground_endpoints` refuses credentials without names)."""
     keys = Keys(namespace)
     station: dict[str, Any] = {"id": "station"}
     if station_names:

@@ -60,8 +60,8 @@ def zenoh_config(cfg: SessionConfig, access_control: dict[str, Any] | None = Non
                      "verify_name_on_connect": True}
         conf.insert_json5("transport/link/tls", json.dumps(link))
     if tls is not None and cfg.connect:
-        # A peer whose certificate is refused fails now, with the reason, instead of
-        # retrying in the background as if the link were slow.
+        # A peer that gets no TLS link fails after the timeout, instead of retrying in the
+        # background as if the link were slow (a refused certificate shows as that timeout).
         conf.insert_json5("connect/timeout_ms", "15000")
         conf.insert_json5("connect/exit_on_failure", "true")
     return conf
@@ -76,8 +76,9 @@ def open_session(cfg: SessionConfig, access_control: dict[str, Any] | None = Non
         raise ConfigError(
             f"could not open a Zenoh session (mode={cfg.mode}, listen={list(cfg.listen)}, "
             f"connect={list(cfg.connect)}): {exc}. Check the endpoints: they look like "
-            "tcp/127.0.0.1:7447, a listen port must be free, and a tls/ endpoint needs the "
-            "credentials its peer trusts.") from None
+            "tcp/127.0.0.1:7447, a listen port must be free, and a tls/ endpoint needs "
+            "credentials from the same CA as its peer's (a refused certificate shows as a "
+            "timeout).") from None
 
 
 def free_loopback_port() -> int:

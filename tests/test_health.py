@@ -92,27 +92,44 @@ def test_killed_modules_restart_and_the_mission_ends_as_if_nothing_happened(tmp_
 @pytest.mark.e2e
 def test_a_killed_mission_manager_resumes_and_ends_as_if_nothing_happened(tmp_path: Path,
                                                                          launch):
-    """The mission manager is SIGKILLed in the middle of a mission; its modules stop;
-    ``rovergate run --out OUT --resume`` carries on from the checkpoint, and the per-step
-    coverage equals an uninterrupted run's exactly."""
-    steps, condition, out = 14, "gated", tmp_path / "p"
+    """The mission manager is SIGKILLed in the middle of a mission, with a ground station on
+    its authenticated link; its modules stop; ``rovergate run --out OUT --resume`` carries on
+    from the checkpoint: the per-step coverage equals an uninterrupted run's exactly, and a
+    station on the resumed link receives the telemetry numbered on, without a gap."""
+    from mission.credentials import CredentialsConfig, create
+    from mission.ground import gaps
+
+    steps, condition, out, ground = 30, "gated", tmp_path / "p", tmp_path / "g"
+    creds = create(CredentialsConfig(out=tmp_path / "credentials"))
     port = free_loopback_port()
     mission = launch("run", "--steps", str(steps), "--condition", condition, "--out", str(out),
-                     "--listen", f"tcp/127.0.0.1:{port}")
-    mission.wait_for_line(r"started sim \(pid")
+                     "--listen", f"tcp/127.0.0.1:{port}", "--contact.credentials",
+                     str(creds["rover"]), "--contact.windows", f"0+{steps}",
+                     "--contact.light-time-s", "0")
+    mission.wait_for_line("link to the ground on")
+    station = ["ground", "--mission", str(out), "--out", str(ground), "--credentials",
+               str(creds["station"]), "--no-stdin"]
+    first = launch(*station)
+    # The directory is the running manager's: neither a resume nor another mission in it.
+    busy = run_cli("run", "--out", str(out), "--resume")
+    assert busy.returncode == 2 and "another mission manager (pid " in busy.stderr, busy.stderr
     modules = {name: mission.pid(name) for name in ("sim", "mapper", "gate", "planner")}
     watcher = StatusWatcher(port)
     try:
-        watcher.wait_step(7)
+        watcher.wait_step(10)
         os.kill(mission.proc.pid, signal.SIGKILL)
     finally:
         watcher.close()
     assert mission.finish(30) == -signal.SIGKILL
     for name, pid in modules.items():  # they notice the manager's token vanish, and stop
         assert wait_gone(pid, 60), f"{name} (pid {pid}) still runs without its mission"
+    assert first.finish(60) == 0, first.text[-3000:]  # the rover left its link
     assert not (out / "metrics.json").exists()
     resumed = launch("run", "--out", str(out), "--resume")
+    resumed.wait_for_line("link to the ground on")
+    second = launch(*station)
     assert resumed.finish(300) == 0, resumed.text[-4000:]
+    assert second.finish(60) == 0, second.text[-3000:]
     at = int(resumed.wait_for_line(r"resumed at step (\d+)").group(1))
     assert 1 <= at <= steps, at
     inproc = run_cli("run", "--steps", str(steps), "--condition", condition, "--in-process",
@@ -123,9 +140,24 @@ def test_a_killed_mission_manager_resumes_and_ends_as_if_nothing_happened(tmp_pa
     i = json.loads((tmp_path / "i" / "metrics.json").read_text())
     assert p["suppressed_per_step"] == i["suppressed_per_step"]
     assert [r["step"] for r in p["manager_resumes"]] == [at]
+    rows = [json.loads(line) for line in (ground / "received.jsonl").read_text().splitlines()]
+    seqs = [r["seq"] for r in rows]
+    assert len(seqs) == len(set(seqs)) and gaps(set(seqs)) == [] and min(seqs) == 1, seqs
+    events = [r["event"] for r in rows if r["kind"] == "event"]
+    assert events[0] == "mission-started" and "mission-resumed" in events
+    assert events[-1] == "mission-done" and p["link"]["undelivered"] == 0
     assert not (out / "checkpoint.pickle").exists()  # the mission ended: nothing to resume
     again = run_cli("run", "--out", str(out), "--resume")
     assert again.returncode == 2 and "does not exist" in again.stderr, again.stderr
+
+
+def test_one_mission_manager_per_directory(tmp_path: Path):
+    from mission.run import hold_directory
+    held = hold_directory(tmp_path)
+    with pytest.raises(ConfigError, match=rf"another mission manager \(pid {os.getpid()}\)"):
+        hold_directory(tmp_path)
+    held.close()  # as the kernel does when its process ends, SIGKILL included
+    hold_directory(tmp_path).close()
 
 
 def test_resume_takes_only_the_mission_directory(tmp_path: Path):
@@ -147,6 +179,15 @@ def test_a_checkpoint_that_names_code_is_refused_not_run(tmp_path: Path):
         def __reduce__(self):
             return (os.system, (f"touch {marker}",))
     (tmp_path / CHECKPOINT).write_bytes(pickle.dumps(Exploit()))
+    with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
+        load(tmp_path)
+    assert not marker.exists()
+    # Pickle resolves dotted names: a module of ours and `subprocess.Popen` reach Popen.
+    def short(text: str) -> bytes:
+        return b"\x8c" + bytes([len(text)]) + text.encode()
+    dotted = (b"\x80\x04" + short("mission.supervisor") + short("subprocess.Popen") + b"\x93"
+              + short("touch") + short(str(marker)) + b"\x86\x85R.")
+    (tmp_path / CHECKPOINT).write_bytes(dotted)
     with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
         load(tmp_path)
     assert not marker.exists()

@@ -543,8 +543,9 @@ def test_a_swap_that_does_not_come_up_is_rolled_back(tmp_path: Path):
     assert metrics["coverage"] == i["coverage"]
 
 
-#: A planner program that comes up (its liveliness token) and dies a moment later.
-_FLAKY = """
+#: A planner program that comes up (its liveliness token), then dies a moment later
+#: ("dies") or never sends a path ("silent").
+_FAULTY = """
 import json, sys, time, zenoh
 arg = sys.argv.index
 conf = zenoh.Config()
@@ -552,37 +553,41 @@ conf.insert_json5("mode", '"client"')
 conf.insert_json5("connect/endpoints", json.dumps([sys.argv[arg("--connect") + 1]]))
 session = zenoh.open(conf)
 token = session.liveliness().declare_token(sys.argv[arg("--namespace") + 1] + "/alive/planner")
-time.sleep(1.0)
+time.sleep(1.0 if sys.argv[1] == "dies" else 600)
 sys.exit(4)
 """
 
 
 @pytest.mark.e2e
-def test_a_swap_that_comes_up_and_keeps_dying_is_rolled_back(tmp_path: Path):
-    """A planner program that comes up and then dies, again after each restart: once it has
-    used its restarts, the planner is rolled back to the built-in one, the mission goes on to
-    its end, and the ground hears why."""
-    flaky = tmp_path / "flaky.py"
-    flaky.write_text(_FLAKY)
+@pytest.mark.parametrize("fault, why", [
+    ("dies", "exited with code 4 more than --max-restarts 1 times"),
+    ("silent", "sent no rover/plan/path of step"),
+])
+def test_a_swap_that_comes_up_and_then_fails_is_rolled_back(tmp_path: Path, fault, why):
+    """A planner program that comes up and then dies after each restart, or never sends a
+    path: the planner is rolled back to the built-in one (and a later command's setting
+    stays), the mission goes on to its end, and the ground hears why."""
+    program = tmp_path / "faulty.py"
+    program.write_text(_FAULTY)
     steps = 12
     m = LinkedMission(tmp_path, "--contact.period-steps", "4", "--contact.window-steps", "2",
                       "--contact.light-time-s", "0", "--max-restarts", "1",
-                      "--planner.programs", f"flaky=python {flaky}", steps=steps)
+                      "--step-timeout-s", "20", "--planner.programs",
+                      f"faulty=python {program} {fault}", steps=steps)
     m.wait_step(3)
-    m.command("planner flaky")
+    m.command("planner faulty")
+    m.command("set gate.k=4")
     metrics, rows, _ = m.finish()
-    (command,) = metrics["link"]["commands"]
-    assert command["state"] == "executed", command  # it did come up
+    assert [c["state"] for c in metrics["link"]["commands"]] == ["executed", "executed"]
     rolled = [r for r in metrics["link"]["reconfigurations"] if r["verb"] == "rollback"]
-    assert len(rolled) == 1 and "planner exited with code 4" in rolled[0]["detail"], rolled
-    assert "restarted with the previous one" in rolled[0]["detail"]
+    assert len(rolled) == 1 and why in rolled[0]["detail"], rolled
+    assert "planner restarted with the previous one" in rolled[0]["detail"]
     events = [(r["event"], r.get("detail", "")) for r in rows if r["kind"] == "event"]
-    assert any(e == "reconfiguration-rolled-back" and "code 4" in d for e, d in events), events
+    assert any(e == "reconfiguration-rolled-back" and why in d for e, d in events), events
     assert metrics["state"] == "done" and len(metrics["coverage"]) == steps + 1
-    assert [r["module"] for r in metrics["restarts"]] == ["planner", "planner"], \
-        metrics["restarts"]
-    config = json.loads(sorted((tmp_path / "m").glob("config.*.json"))[-1].read_text())
-    assert config["planner"]["command"] == "", config["planner"]
+    last = max((tmp_path / "m").glob("config.*.json"), key=lambda p: int(p.suffixes[0][1:]))
+    config = json.loads(last.read_text())
+    assert config["planner"]["command"] == "" and config["gate"]["k"] == 4
 
 
 @pytest.mark.e2e
@@ -644,6 +649,7 @@ def test_two_missions_with_default_links_run_side_by_side(tmp_path: Path):
 @pytest.mark.parametrize("endpoint, on_loopback", [
     ("tcp/127.0.0.1:0", True), ("tcp/[::1]:0", True), ("tcp/localhost:0", True),
     ("tcp/0.0.0.0:0", False), ("tcp/10.0.0.2:0", False), ("tcp/[::]:0", False),
+    ("tcp/127.attacker.example:0", False), ("tcp/rover.local:0", False),
 ])
 def test_without_credentials_the_ground_link_stays_on_loopback(endpoint, on_loopback):
     assert loopback(endpoint) is on_loopback
@@ -655,6 +661,8 @@ def test_without_credentials_the_ground_link_stays_on_loopback(endpoint, on_loop
     with pytest.raises(ConfigError, match="use tls/HOST:PORT"):
         check_ground_endpoints((endpoint,), authenticated=True)
     check_ground_endpoints((endpoint.replace("tcp/", "tls/"),), authenticated=True)
+    with pytest.raises(ConfigError, match="ground-stations is empty"):
+        check_ground_endpoints((endpoint.replace("tcp/", "tls/"),), True, stations=())
 
 
 @pytest.mark.e2e
