@@ -17,10 +17,10 @@ step's budget (frontier size over distance), over cells the map knows and that a
 obstacles (or, within the camera's blind band next to the rover, cells it does not know).
 Nothing within reach: turn in place a quarter turn.
 
-    python examples/frontier_planner.py --connect tcp/127.0.0.1:7447 --namespace rover
+    python examples/frontier_planner.py --connect unixsock-stream/PATH --namespace rover
 
 (`rovergate run --planner.command "python examples/frontier_planner.py"` starts it for you
-and appends those two flags.)
+and appends those two flags: the mission's own socket, where modules have full rights.)
 """
 
 from __future__ import annotations

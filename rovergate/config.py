@@ -28,14 +28,15 @@ class SessionConfig:
     connect: tuple[str, ...] = ()
     """Endpoints to connect to, e.g. tcp/127.0.0.1:7447."""
     listen: tuple[str, ...] = ()
-    """Endpoints to listen on, e.g. tcp/0.0.0.0:7447 to let other machines connect."""
+    """Endpoints to listen on, e.g. tcp/0.0.0.0:7447 to let other machines connect (to
+    `rovergate run`: read-only for them, see rovergate/access.py)."""
     namespace: str = "rover"
     """Prefix of every key expression, so that several rovers can share one network."""
     multicast_scouting: bool = False
     """Discover peers by UDP multicast. Off by default: endpoints are explicit."""
     wait_for_peers: int = 0
     """Before declaring itself ready, wait until this many peers are linked (`rovergate run`
-    sets it so that the first messages of a mission reach every module)."""
+    starts its modules as clients with 1: linked to the mission's session)."""
 
 
 @dataclass
