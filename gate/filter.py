@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gate.views import pixels
 from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics
 
@@ -45,6 +46,11 @@ class ObservationGate:
         self._R_cam_map.append(R)
         self._t_cam_map.append(-R @ T_map_camera[:3, 3])
         self._intrinsics.append(intrinsics)
+
+    def add_frame(self, T_map_camera: np.ndarray, intrinsics: CameraIntrinsics,
+                  depth: np.ndarray) -> None:
+        """Record an acquired frame: its frustum (the frustum gate does not read depth)."""
+        self.add_frustum(T_map_camera, intrinsics)
 
     def exposure_counts(self, points_map: np.ndarray, stop_at: int | None = None) -> np.ndarray:
         """n_t(x): (N,) int32 number of recorded frustums that contain each point.
@@ -97,3 +103,70 @@ class ObservationGate:
         candidates = np.flatnonzero(out)
         out[candidates] = self.exposure_counts(points_map[candidates], stop_at=self.k) >= self.k
         return out
+
+
+class RayGate(ObservationGate):
+    """Equation 4 with ray-consistent exposure (the ``gated-ray`` condition).
+
+    A frame *exposes* a predicted point x only when its depth image says the ray through x
+    passed through it: x is in front of the camera within the sensor's usable range, projects
+    inside the image, and the return at its pixel is usable and ends at least ``margin_m``
+    beyond x. A nearer return (x is hidden: occluded), one within the margin (x is confirmed),
+    and an unusable return give no evidence at all. A return is unusable when it is dropped
+    (NaN), saturated (+Inf: nothing within range, so where the ray ended is unknown) or
+    grazing: the surface it hit is seen at an incidence angle above ``grazing_max_deg``,
+    estimated from the depth image's local gradient (``tan(angle) = |grad d| f / d``: a
+    plane seen at that angle changes depth by ``d tan(angle) / f`` from one pixel to the
+    next). Depth discontinuities, whose mixed returns are least trustworthy, read as grazing.
+
+        U_t = { x in O_hat_t : n_ray(x) >= K  and  min_{p in S_t} ||x - p|| > epsilon }
+    """
+
+    def __init__(self, k: int, epsilon_m: float, min_range_m: float, max_range_m: float,
+                 margin_m: float, grazing_max_deg: float) -> None:
+        if k < 1 or epsilon_m <= 0 or margin_m < 0 or not 0 < grazing_max_deg <= 90:
+            raise ValueError(f"the ray gate needs k >= 1, epsilon > 0, margin >= 0 and a "
+                             f"grazing angle in (0, 90]; got k={k}, epsilon={epsilon_m}, "
+                             f"margin={margin_m}, angle={grazing_max_deg}")
+        super().__init__(k, epsilon_m, min_range_m, max_range_m)
+        self.margin_m = margin_m
+        self.tan_grazing = np.inf if grazing_max_deg >= 90 else np.tan(np.radians(grazing_max_deg))
+        self._frames: list[tuple[np.ndarray, np.ndarray, CameraIntrinsics, np.ndarray]] = []
+
+    @property
+    def n_frustums(self) -> int:
+        return len(self._frames)
+
+    def usable_depth(self, depth: np.ndarray, k: CameraIntrinsics) -> np.ndarray:
+        """The depth image with every unusable return (dropped, saturated, grazing) NaN."""
+        d = np.asarray(depth, dtype=np.float32).copy()
+        d[~np.isfinite(d)] = np.nan
+        if np.isfinite(self.tan_grazing):
+            with np.errstate(invalid="ignore"):
+                gv, gu = np.gradient(d.astype(np.float64))
+                tan = np.hypot(gu * k.fx, gv * k.fy) / d
+            d[~(tan <= self.tan_grazing)] = np.nan  # NaN neighbours: no slope, no evidence
+        return d
+
+    def add_frame(self, T_map_camera: np.ndarray, k: CameraIntrinsics, depth: np.ndarray
+                  ) -> None:
+        """Record one acquired frame (optical-frame pose in map, its intrinsics and depth)."""
+        R = T_map_camera[:3, :3].T
+        self._frames.append((R, -R @ T_map_camera[:3, 3], k, self.usable_depth(depth, k)))
+
+    def exposure_counts(self, points_map: np.ndarray, stop_at: int | None = None) -> np.ndarray:
+        """n_ray(x): (N,) int32 frames whose ray passed through each point (class docstring);
+        ``stop_at`` as in :meth:`ObservationGate.exposure_counts`. (:meth:`unsupported`, the
+        support test and the shortcuts, are equation 4's own.)"""
+        counts = np.zeros(len(points_map), dtype=np.int32)
+        active = np.arange(len(points_map))
+        p_all = np.asarray(points_map, dtype=np.float64)
+        for R, t, k, d in self._frames:
+            if stop_at is not None:
+                active = active[counts[active] < stop_at]
+            if len(active) == 0:
+                break
+            idx, v, u, z = pixels(p_all[active], R, t, k, self.min_range_m, self.max_range_m)
+            passed = d[v, u] >= z + self.margin_m  # NaN (no usable return): False
+            counts[active[idx[passed]]] += 1
+        return counts

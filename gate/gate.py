@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gate.filter import ObservationGate
+from gate.filter import ObservationGate, RayGate
 from gate.views import ViewCounter, as_views
 from rovergate.conditions import get_condition
 from rovergate.config import GateConfig, SensorConfig
@@ -66,8 +66,11 @@ class Gate:
         self.reference_xyz = reference_xyz
         self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
         self.delta_m = cfg.oracle_delta_m(d_scene_m)
-        self.filter = ObservationGate(cfg.k, cfg.epsilon_m(d_scene_m), sensor.min_range_m,
-                                      sensor.max_range_m)
+        self.filter = (RayGate(cfg.k, cfg.epsilon_m(d_scene_m), sensor.min_range_m,
+                               sensor.max_range_m, cfg.ray_margin_m, cfg.ray_grazing_max_deg)
+                       if condition == "gated-ray" else
+                       ObservationGate(cfg.k, cfg.epsilon_m(d_scene_m), sensor.min_range_m,
+                                       sensor.max_range_m))
         self.views = ViewCounter(sensor.min_range_m, sensor.max_range_m, view_tolerance_m)
 
     def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics, depth: np.ndarray
@@ -75,7 +78,7 @@ class Gate:
         """Take up a past frame without composing its map (a restarted gate replaying its
         past): its only state is the frames so far (U_t and the views are recounted)."""
         T = T_map_camera.matrix()
-        self.filter.add_frustum(T, intrinsics)
+        self.filter.add_frame(T, intrinsics, depth)
         self.views.add_frame(T, intrinsics, depth)
 
     def step(self, mapped: MapperOutput, T_map_camera: Pose, intrinsics: CameraIntrinsics,
@@ -99,7 +102,7 @@ class Gate:
         keep = np.ones(len(pred), dtype=bool)
         extra = np.zeros((0, 3), dtype=np.float32)
         suppressed = 0
-        if name == "gated":
+        if self.condition.withholds:
             unsupported = self.filter.unsupported(pred, s_xyz)
             keep = ~unsupported
             suppressed = int(unsupported.sum())

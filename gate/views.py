@@ -32,6 +32,23 @@ def _rows(points: np.ndarray) -> np.ndarray:
     return p.view(np.dtype((np.void, 12))).ravel()
 
 
+def pixels(points: np.ndarray, R: np.ndarray, t: np.ndarray, k: CameraIntrinsics,
+           min_range_m: float, max_range_m: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where a frame (map-to-optical rotation ``R``, translation ``t``) sees ``points``:
+    ``(idx, v, u, z)`` of those in front of it within range that land on a pixel (the
+    nearest), with their row, column and depth along the optical axis."""
+    pc = np.asarray(points, dtype=np.float64) @ R.T + t
+    z = pc[:, 2]
+    ok = (z >= min_range_m) & (z <= max_range_m)
+    zs = np.where(ok, z, 1.0)
+    u = np.floor(k.fx * pc[:, 0] / zs + k.cx + 0.5).astype(np.int64)
+    v = np.floor(k.fy * pc[:, 1] / zs + k.cy + 0.5).astype(np.int64)
+    ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+    idx = np.flatnonzero(ok)
+    return idx, v[idx], u[idx], z[idx]
+
+
 class _Frame:
     __slots__ = ("R", "t", "k", "depth")
 
@@ -63,17 +80,9 @@ class ViewCounter:
             return out
         p = np.asarray(points, dtype=np.float64)
         for frame in self.frames[first:]:
-            pc = p @ frame.R.T + frame.t
-            z = pc[:, 2]
-            ok = (z >= self.min_range_m) & (z <= self.max_range_m)
-            zs = np.where(ok, z, 1.0)
-            k = frame.k
-            u = np.floor(k.fx * pc[:, 0] / zs + k.cx + 0.5).astype(np.int64)
-            v = np.floor(k.fy * pc[:, 1] / zs + k.cy + 0.5).astype(np.int64)
-            ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
-            idx = np.flatnonzero(ok)
-            d = frame.depth[v[idx], u[idx]]
-            seen = d >= z[idx] - self.tolerance_m  # NaN (no valid return) compares False
+            idx, v, u, z = pixels(p, frame.R, frame.t, frame.k, self.min_range_m,
+                                  self.max_range_m)
+            seen = frame.depth[v, u] >= z - self.tolerance_m  # NaN (no return): False
             out[idx[seen]] += 1
         return out
 

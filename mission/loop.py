@@ -26,6 +26,7 @@ from mission.evaluation import StepEvaluator, collision_class
 from mission.metrics import suppression_audit
 from mission.record import MissionRecord
 from mission.transport import InProcessTransport, Transport
+from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig
 from rovergate.geometry import in_region
 from rovergate.module import STOP
@@ -113,9 +114,9 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 record.planner_predicted.append(len(kept))
                 # The map carries no count of what the gate withheld; under the gate, what it
                 # withheld is what it did not pass on (in the scored region, where it works).
-                record.suppressed.append(len(predicted) - len(kept) if condition == "gated"
-                                         else 0)
-                if condition == "gated":
+                withholds = get_condition(condition).withholds
+                record.suppressed.append(len(predicted) - len(kept) if withholds else 0)
+                if withholds:
                     record.suppressed_fp.append(suppression_audit(
                         predicted, xyz(kept), judge.reference, cfg.oracle_delta_m,
                         judge.tree)[1])

@@ -195,7 +195,7 @@ def run_specs(cfg: StudyConfig) -> list[RunSpec]:
         for start in cfg.starts:
             for condition in cfg.conditions:
                 reps = cfg.reps
-                if condition in ("learned", "gated"):
+                if condition == "learned" or get_condition(condition).withholds:
                     reps = max(reps, cfg.filter_reps)
                 specs.extend(RunSpec(scene, start, condition, r) for r in range(reps))
     return specs

@@ -53,6 +53,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from mission.metrics import final_coverage, s70  # noqa: E402
+from rovergate.conditions import get_condition  # noqa: E402
 
 if TYPE_CHECKING:
     from mission.study import RunSpec, StudyConfig
@@ -71,7 +72,8 @@ ALPHA = 0.05
 #: Up to this many repetitions the sign-flip test enumerates every sign assignment.
 EXACT_SIGNFLIP_MAX_REPS = 16
 LABELS = {"obs": "Obs. only", "learned-fp": "Learned − FP†", "learned": "Learned (abs.)",
-          "learned+fn": "Learned + FN†", "truth": "Ground truth†", "gated": "Obs.-gated filter"}
+          "learned+fn": "Learned + FN†", "truth": "Ground truth†", "gated": "Obs.-gated filter",
+          "gated-ray": "Gate, ray-consistent"}
 PLACEBO_LABEL = "Placebo (learned vs learned)"
 STAGES = ("render", "integrate", "gate", "plan", "execute")
 #: Table 1's metrics: (runs.csv column, heading, digits).
@@ -122,7 +124,8 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             "s70_reached": reached, "collisions": m["collisions"],
             "path_length_m": m["path_length_m"],
             "predicted_per_step": _mean(m.get("predicted_points_per_step") or [None]),
-            "suppressed_per_step": _mean(held) if s.condition == "gated" else None,
+            "suppressed_per_step": (_mean(held) if get_condition(s.condition).withholds
+                                    else None),
             "suppressed_fp_share": m.get("suppressed_fp_share"),
             "wall_s": m["wall_s"], "median_step_s": m["median_step_s"],
             **{f"{k}_s": stage.get(k) for k in STAGES},

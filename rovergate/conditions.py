@@ -14,7 +14,11 @@ learned     S_t + O_hat_t                         prediction
 learned+fn  S_t + O_hat_t + FN_t                  prediction, ground truth (oracle)
 truth       O*                                    ground truth (oracle)
 gated       S_t + (O_hat_t - U_t)                 prediction
+gated-ray   S_t + (O_hat_t - U_ray_t)             prediction, depth of every frame
 ========== ==================================== ==========================================
+
+U_ray_t is U_t with ray-consistent exposure: a frame counts only when the ray through the
+point passed it by a margin on a usable return (gate/filter.py, RayGate).
 """
 
 from __future__ import annotations
@@ -32,6 +36,9 @@ class Condition:
     doc: str
     needs_prediction: bool
     needs_truth: bool
+    withholds: bool = False
+    """It passes on only part of the prediction, by a gate (evaluation audits what it
+    withheld)."""
 
 
 CONDITIONS: dict[str, Condition] = {c.name: c for c in [
@@ -40,7 +47,10 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in [
     Condition("learned", "S_t with the thresholded learned prediction", True, False),
     Condition("learned+fn", "learned, oracle false negatives restored", True, True),
     Condition("truth", "reference occupancy O*", False, True),
-    Condition("gated", "learned through the observation-gated filter (eq. 4)", True, False),
+    Condition("gated", "learned through the observation-gated filter (eq. 4)", True, False,
+              withholds=True),
+    Condition("gated-ray", "learned through the gate with ray-consistent exposure", True,
+              False, withholds=True),
 ]}
 
 

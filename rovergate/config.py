@@ -184,6 +184,14 @@ class GateConfig:
     point minus this (gate/views.py): the planner's z-buffer tolerance, so that a past view
     saw what a candidate view at that pose would have counted."""
 
+    ray_margin_m: float = 0.3
+    """gated-ray: a frame exposes a predicted point only when the return at its pixel ends at
+    least this far beyond it (the ray passed through it; gate/filter.py, RayGate). Above the
+    observed surface's voxel (0.15 m) and the depth noise of the degraded profiles."""
+    ray_grazing_max_deg: float = 75.0
+    """gated-ray: a return from a surface seen at an incidence angle above this (estimated
+    from the depth image's gradient) gives no evidence; 90 turns the test off."""
+
     def epsilon_m(self, d_scene_m: float) -> float:
         """The support radius epsilon of equation 4, in metres."""
         return self.epsilon_frac * d_scene_m

@@ -125,6 +125,7 @@ def test_every_condition_composes_as_equation_2(name):
         "learned+fn": {0: 1, 1: 2, 2: 2, 3: 0},   # (0,0,0) and (9,9,9) have no prediction near
         "truth": {0: 0, 1: 0, 2: 0, 3: 3},
         "gated": {0: 1, 1: 2, 2: 0, 3: 0},        # one frustum only: nothing suppressed yet
+        "gated-ray": {0: 1, 1: 2, 2: 0, 3: 0},    # likewise
     }[name]
     assert counts == expected
 
@@ -216,3 +217,135 @@ def test_everything_the_planner_gets_lies_in_the_scored_region():
         out = new_gate(name, ref, bounds).step(_mapped(surface, pred), pose, K, FAR)
         p = xyz(out.points)
         assert len(p) and (np.abs(p[:, :2]) <= 10).all(), name
+
+
+# --- gated-ray: exposure only where the ray passed through the point ----------------------
+
+
+def make_ray_gate(k=1, eps=0.5, margin=0.3, grazing=75.0):
+    from gate.filter import RayGate
+    return RayGate(k=k, epsilon_m=eps, min_range_m=0.3, max_range_m=20.0, margin_m=margin,
+                   grazing_max_deg=grazing)
+
+
+def wall(distance: float) -> np.ndarray:
+    """A depth image of a wall facing the camera ``distance`` metres ahead."""
+    return np.full((K.height, K.width), distance, dtype=np.float32)
+
+
+def test_a_ray_exposes_only_what_it_passed_through():
+    """Points 4 m (in front of a wall at 5 m), 4.9 m (on it, within the margin), 5.1 and
+    10 m (behind it) ahead: only the first is exposed; the frustum gate counts all four."""
+    pts = np.array([[4.0, 0, 1], [4.9, 0, 1], [5.1, 0, 1], [10, 0, 1]], dtype=np.float32)
+    ray, frustum = make_ray_gate(), make_gate()
+    for g in (ray, frustum):
+        g.add_frame(camera_looking_along_x(), K, wall(5.0))
+    assert ray.exposure_counts(pts).tolist() == [1, 0, 0, 0]
+    assert frustum.exposure_counts(pts).tolist() == [1, 1, 1, 1]
+
+
+def test_dropped_saturated_and_out_of_range_returns_are_no_evidence():
+    g = make_ray_gate()
+    for depth in (np.nan, np.inf, -np.inf):
+        g.add_frame(camera_looking_along_x(), K, wall(depth))
+    pts = np.array([[4.0, 0, 1], [10, 0, 1]], dtype=np.float32)
+    assert g.exposure_counts(pts).tolist() == [0, 0]
+    g.add_frame(camera_looking_along_x(), K, wall(15.0))
+    assert g.exposure_counts(pts).tolist() == [1, 1]
+    assert g.exposure_counts(np.array([[25, 0, 1]], np.float32)).tolist() == [0]  # > range
+
+
+def test_a_grazing_return_is_no_evidence():
+    """A floor seen almost edge-on: its returns change depth fast from row to row. With the
+    grazing test on they give no evidence; with it off (90 degrees) they do."""
+    rows = np.arange(K.height, dtype=np.float32)[:, None] - 24  # 0 at the point's row
+    # 1 m more depth per row at 10 m: tan(angle) = 1 * 57.9 px / 10 m, 80 degrees.
+    floor = np.broadcast_to(np.maximum(10.0 + rows, 0.5), (K.height, K.width)).astype(
+        np.float32)
+    point = np.array([[4.0, 0, 1]], dtype=np.float32)  # well in front of every return
+    steep, off = make_ray_gate(grazing=75.0), make_ray_gate(grazing=90.0)
+    for g in (steep, off):
+        g.add_frame(camera_looking_along_x(), K, floor)
+    assert steep.exposure_counts(point).tolist() == [0]
+    assert off.exposure_counts(point).tolist() == [1]
+    # 5 cm more per row at 10 m is 16 degrees: every return usable.
+    gentle = np.broadcast_to(10.0 + 0.05 * rows, (K.height, K.width)).astype(np.float32)
+    assert np.isfinite(make_ray_gate(grazing=75.0).usable_depth(gentle, K)).all()
+
+
+def test_the_ray_gate_withholds_an_occluded_prediction_the_frustum_gate_drops():
+    """A prediction hidden behind a rock in every frame: the frustum gate suppresses it after
+    K frames although nothing ever looked at it; the ray gate keeps it."""
+    hidden = np.array([[8.0, 0, 1]], dtype=np.float32)
+    no_surface = np.zeros((0, 3), np.float32)
+    ray, frustum = make_ray_gate(k=2), make_gate(k=2)
+    for x in (0.0, 0.5, 1.0):
+        for g in (ray, frustum):
+            g.add_frame(camera_looking_along_x(x), K, wall(4.0 - x))
+    assert frustum.unsupported(hidden, no_surface).tolist() == [True]
+    assert ray.unsupported(hidden, no_surface).tolist() == [False]
+    # Seen through twice (the rock gone), unsupported: suppressed; supported: kept.
+    for _ in range(2):
+        ray.add_frame(camera_looking_along_x(), K, wall(15.0))
+    assert ray.unsupported(hidden, no_surface).tolist() == [True]
+    assert ray.unsupported(hidden, hidden + [[0, 0.3, 0]]).tolist() == [False]
+
+
+def test_ray_gate_equals_its_rule_computed_point_by_point():
+    """The vectorised count and equation 4's shortcuts against the rule, one point and one
+    frame at a time, on random frames with dropped, saturated and grazing returns."""
+    from gate.filter import RayGate
+    rng = np.random.default_rng(5)
+    g = RayGate(k=2, epsilon_m=0.8, min_range_m=0.3, max_range_m=20.0, margin_m=0.3,
+                grazing_max_deg=75.0)
+    frames = []
+    for yaw in rng.uniform(-0.5, 0.5, 12):
+        T = camera_looking_along_x(rng.uniform(-1, 1))
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        T[:3, :3] = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]) @ T[:3, :3]
+        depth = rng.uniform(2, 19, (K.height // 8, K.width // 8)).repeat(8, 0).repeat(8, 1)
+        depth = depth.astype(np.float32)
+        depth[rng.uniform(size=depth.shape) < 0.1] = np.nan
+        depth[rng.uniform(size=depth.shape) < 0.05] = np.inf
+        g.add_frame(T, K, depth)
+        frames.append((T, depth))
+    pts = rng.uniform([-2, -8, -3], [15, 8, 3], (1500, 3))
+    surface = rng.uniform([-2, -8, -3], [15, 8, 3], (300, 3))
+    tan_max = np.tan(np.radians(75.0))
+
+    def usable(depth, v, u):
+        d = depth[v, u]
+        if not np.isfinite(d):
+            return None
+        gv, gu = np.gradient(np.where(np.isfinite(depth), depth, np.nan).astype(np.float64))
+        t = np.hypot(gu[v, u] * K.fx, gv[v, u] * K.fy) / d
+        return d if t <= tan_max else None  # a non-finite neighbour: NaN slope, unusable
+
+    expected_counts = np.zeros(len(pts), dtype=int)
+    for T, depth in frames:
+        R = T[:3, :3].T
+        for i, p in enumerate(pts):
+            x, y, z = R @ (p - T[:3, 3])
+            if not 0.3 <= z <= 20.0:
+                continue
+            u = int(np.floor(K.fx * x / z + K.cx + 0.5))
+            v = int(np.floor(K.fy * y / z + K.cy + 0.5))
+            if 0 <= u < K.width and 0 <= v < K.height:
+                d = usable(depth, v, u)
+                expected_counts[i] += d is not None and d >= z + 0.3
+    assert np.array_equal(g.exposure_counts(pts), expected_counts)
+    dist = np.min(np.linalg.norm(pts[:, None] - surface[None], axis=2), axis=1)
+    expected = (expected_counts >= 2) & (dist > 0.8)
+    assert 0 < expected.sum() < len(pts)
+    assert np.array_equal(g.unsupported(pts, surface), expected)
+
+
+def test_gated_ray_condition_withholds_through_the_ray_gate():
+    gate = new_gate("gated-ray")  # epsilon 0.3 m, K 2
+    pred = np.vstack([[[4.0, 0, 1]], [[8.0, 0, 1]]]).astype(np.float32)  # before / behind
+    pose = Pose.from_matrix(camera_looking_along_x())
+    no_surface = np.zeros((0, 3), np.float32)
+    for _ in range(2):
+        out = gate.step(_mapped(no_surface, pred), pose, K, wall(6.0))
+    kept = out.points[out.points["source"] == Source.PREDICTED]
+    assert out.suppressed == 1 and kept["x"].tolist() == [8.0]
