@@ -48,9 +48,15 @@ class ObservationGate:
         self._intrinsics.append(intrinsics)
 
     def add_frame(self, T_map_camera: np.ndarray, intrinsics: CameraIntrinsics,
-                  depth: np.ndarray) -> None:
-        """Record an acquired frame: its frustum (the frustum gate does not read depth)."""
+                  depth: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        """Record an acquired frame: its frustum (the frustum gate reads neither the depth
+        nor the pose's covariance)."""
         self.add_frustum(T_map_camera, intrinsics)
+
+    @property
+    def support_radius_m(self) -> float:
+        """How far from a predicted point an observed one supports it: epsilon."""
+        return self.epsilon_m
 
     def exposure_counts(self, points_map: np.ndarray, stop_at: int | None = None) -> np.ndarray:
         """n_t(x): (N,) int32 number of recorded frustums that contain each point.
@@ -91,7 +97,8 @@ class ObservationGate:
         within epsilon: only the comparison with epsilon matters)."""
         if len(surface_map) == 0:
             return np.full(len(points_map), np.inf)
-        d, _ = kdtree(surface_map).query(points_map, k=1, distance_upper_bound=self.epsilon_m)
+        d, _ = kdtree(surface_map).query(points_map, k=1,
+                                         distance_upper_bound=self.support_radius_m)
         return d
 
     def unsupported(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
@@ -99,7 +106,7 @@ class ObservationGate:
         if len(points_map) == 0:
             return np.zeros(0, dtype=bool)
         # Supported points are never in U_t: count exposures only for the others.
-        out = self.support_distance(points_map, surface_map) > self.epsilon_m
+        out = self.support_distance(points_map, surface_map) > self.support_radius_m
         candidates = np.flatnonzero(out)
         out[candidates] = self.exposure_counts(points_map[candidates], stop_at=self.k) >= self.k
         return out
@@ -148,8 +155,8 @@ class RayGate(ObservationGate):
             d[~(tan <= self.tan_grazing)] = np.nan  # NaN neighbours: no slope, no evidence
         return d
 
-    def add_frame(self, T_map_camera: np.ndarray, k: CameraIntrinsics, depth: np.ndarray
-                  ) -> None:
+    def add_frame(self, T_map_camera: np.ndarray, k: CameraIntrinsics, depth: np.ndarray,
+                  covariance: np.ndarray | None = None) -> None:
         """Record one acquired frame (optical-frame pose in map, its intrinsics and depth)."""
         R = T_map_camera[:3, :3].T
         self._frames.append((R, -R @ T_map_camera[:3, 3], k, self.usable_depth(depth, k)))
@@ -169,4 +176,64 @@ class RayGate(ObservationGate):
             idx, v, u, z = pixels(p_all[active], R, t, k, self.min_range_m, self.max_range_m)
             passed = d[v, u] >= z + self.margin_m  # NaN (no usable return): False
             counts[active[idx[passed]]] += 1
+        return counts
+
+
+class PoseGate(ObservationGate):
+    """Equation 4 aware of the pose's uncertainty (the ``gated-pose`` condition).
+
+    Each frame comes with its published pose's covariance (``sensor/pose_with_covariance``).
+    With r = ``sigmas`` times the largest standard deviation of its position and a =
+    ``sigmas`` times the largest of its rotation, a frame exposes a predicted point only when
+    every pose within that ellipsoid would have had it in the frustum: its depth along the
+    optical axis within ``[min_range + r, max_range - r]``, and its pixel at least
+    ``f r / (z - r) + f tan(a)`` pixels inside the image's edges (how far a position error
+    of r and a turn of a move the projection of a point z metres ahead). Support is searched
+    within epsilon + r of the latest frame: the surface was placed with the poses' errors
+    too. With zero covariance it is the frustum gate exactly.
+    """
+
+    def __init__(self, k: int, epsilon_m: float, min_range_m: float, max_range_m: float,
+                 sigmas: float) -> None:
+        if sigmas < 0:
+            raise ValueError(f"the pose gate needs sigmas >= 0, got {sigmas}")
+        super().__init__(k, epsilon_m, min_range_m, max_range_m)
+        self.sigmas = sigmas
+        self._reach: list[tuple[float, float]] = []  # per frame: (r in m, a in rad)
+
+    def add_frame(self, T_map_camera: np.ndarray, intrinsics: CameraIntrinsics,
+                  depth: np.ndarray, covariance: np.ndarray | None = None) -> None:
+        cov = np.zeros((6, 6)) if covariance is None else np.asarray(covariance, np.float64)
+        sd_pos = np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))
+        sd_rot = np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))
+        self._reach.append((self.sigmas * sd_pos, min(self.sigmas * sd_rot, np.pi / 2 - 1e-6)))
+        self.add_frustum(T_map_camera, intrinsics)
+
+    @property
+    def support_radius_m(self) -> float:
+        return self.epsilon_m + (self._reach[-1][0] if self._reach else 0.0)
+
+    def exposure_counts(self, points_map: np.ndarray, stop_at: int | None = None) -> np.ndarray:
+        """Frames that expose each point under every pose of their uncertainty (class
+        docstring); ``stop_at`` as in :meth:`ObservationGate.exposure_counts`."""
+        counts = np.zeros(len(points_map), dtype=np.int32)
+        active = np.arange(len(points_map))
+        p_all = np.asarray(points_map, dtype=np.float64)
+        for R, t, k, (r, a) in zip(self._R_cam_map, self._t_cam_map, self._intrinsics,
+                                   self._reach, strict=True):
+            if stop_at is not None:
+                active = active[counts[active] < stop_at]
+            if len(active) == 0:
+                break
+            pc = p_all[active] @ R.T + t
+            z = pc[:, 2]
+            ok = (z - r >= self.min_range_m) & (z + r <= self.max_range_m)
+            zs = np.where(ok, z, 1.0)
+            mu = k.fx * (r / np.maximum(zs - r, 1e-9) + np.tan(a))
+            mv = k.fy * (r / np.maximum(zs - r, 1e-9) + np.tan(a))
+            u = k.fx * pc[:, 0] / zs + k.cx
+            v = k.fy * pc[:, 1] / zs + k.cy
+            ok &= (u >= -0.5 + mu) & (u < k.width - 0.5 - mu)
+            ok &= (v >= -0.5 + mv) & (v < k.height - 0.5 - mv)
+            counts[active[ok]] += 1
         return counts

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gate.filter import ObservationGate, RayGate
+from gate.filter import ObservationGate, PoseGate, RayGate
 from gate.views import ViewCounter, as_views
 from rovergate.conditions import get_condition
 from rovergate.config import GateConfig, SensorConfig
@@ -66,25 +66,27 @@ class Gate:
         self.reference_xyz = reference_xyz
         self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
         self.delta_m = cfg.oracle_delta_m(d_scene_m)
-        self.filter = (RayGate(cfg.k, cfg.epsilon_m(d_scene_m), sensor.min_range_m,
-                               sensor.max_range_m, cfg.ray_margin_m, cfg.ray_grazing_max_deg)
-                       if condition == "gated-ray" else
-                       ObservationGate(cfg.k, cfg.epsilon_m(d_scene_m), sensor.min_range_m,
-                                       sensor.max_range_m))
+        eps, near, far = cfg.epsilon_m(d_scene_m), sensor.min_range_m, sensor.max_range_m
+        self.filter = {
+            "gated-ray": lambda: RayGate(cfg.k, eps, near, far, cfg.ray_margin_m,
+                                         cfg.ray_grazing_max_deg),
+            "gated-pose": lambda: PoseGate(cfg.k, eps, near, far, cfg.pose_sigmas),
+        }.get(condition, lambda: ObservationGate(cfg.k, eps, near, far))()
         self.views = ViewCounter(sensor.min_range_m, sensor.max_range_m, view_tolerance_m)
 
-    def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics, depth: np.ndarray
-                ) -> None:
+    def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics, depth: np.ndarray,
+                covariance: np.ndarray | None = None) -> None:
         """Take up a past frame without composing its map (a restarted gate replaying its
-        past): its only state is the frames so far (U_t and the views are recounted)."""
+        past): its only state is the frames so far (U_t and the views are recounted).
+        ``covariance``: the (6, 6) covariance of ``T_map_camera`` (zeros if None)."""
         T = T_map_camera.matrix()
-        self.filter.add_frame(T, intrinsics, depth)
+        self.filter.add_frame(T, intrinsics, depth, covariance)
         self.views.add_frame(T, intrinsics, depth)
 
     def step(self, mapped: MapperOutput, T_map_camera: Pose, intrinsics: CameraIntrinsics,
-             depth: np.ndarray) -> PlannerMap:
+             depth: np.ndarray, covariance: np.ndarray | None = None) -> PlannerMap:
         """The planner-facing occupancy of step t (the frame of step t is counted first)."""
-        self.restore(T_map_camera, intrinsics, depth)
+        self.restore(T_map_camera, intrinsics, depth, covariance)
         name = self.condition.name
         if name == "truth":
             ref = self.reference_xyz  # O* alone (equation 2)

@@ -37,8 +37,11 @@ class GateNode(LogicDefaults):
     def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()
         mapped = MapperOutput(step, inputs["surface"], inputs["predicted"])
-        occupancy = self.gate.step(mapped, inputs["pose"], inputs["info"], inputs["depth"])
+        pose = inputs["pose"]  # with its covariance (sensor/pose_with_covariance)
+        occupancy = self.gate.step(mapped, pose.pose, inputs["info"], inputs["depth"],
+                                   pose.covariance)
         return StepOutput([("planner_map", occupancy)], {"gate": time.perf_counter() - t0})
 
     def restore(self, step: int, inputs: dict[str, Any]) -> None:
-        self.gate.restore(inputs["pose"], inputs["info"], inputs["depth"])
+        pose = inputs["pose"]
+        self.gate.restore(pose.pose, inputs["info"], inputs["depth"], pose.covariance)

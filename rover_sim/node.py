@@ -11,7 +11,7 @@ from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
 from rovergate.graph import MODULES, Module
 from rovergate.module import Ask, StepOutput
-from rovergate.types import XYZ_DTYPE, make_cloud
+from rovergate.types import XYZ_DTYPE, PoseWithCovariance, make_cloud
 
 
 class SimNode:
@@ -34,6 +34,8 @@ class SimNode:
         out.messages += [("depth", (step, frame.depth_m)),
                          ("camera_info", (step, frame.intrinsics)),
                          ("pose", (step, frame.T_map_camera)),
+                         ("pose_cov", (step, PoseWithCovariance(frame.T_map_camera,
+                                                                frame.covariance))),
                          ("base_pose", (step, frame.T_map_base))]
         return out
 

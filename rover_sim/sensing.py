@@ -94,6 +94,20 @@ class Sensing:
             self._walk.append(self._walk[-1] + inc)
         return self._walk[step]
 
+    def pose_covariance(self, step: int, lever_m: float = 0.0) -> np.ndarray:
+        """(6, 6) covariance of a published pose at ``step`` (x, y, z, rotation about x, y,
+        z; ROS order), as the drift model states it: ``step`` independent increments of the
+        random walk, and the heading error's effect on a point ``lever_m`` from the base
+        (the camera on its mast) added to x and y, which bounds it in every direction. What
+        an onboard estimator would report; the drift drawn is not in it."""
+        c = self.cfg
+        yaw_var = step * np.radians(c.drift_yaw_deg) ** 2
+        cov = np.zeros((6, 6))
+        cov[0, 0] = cov[1, 1] = step * c.drift_xy_m ** 2 + lever_m ** 2 * yaw_var
+        cov[2, 2] = step * c.drift_z_m ** 2
+        cov[5, 5] = yaw_var
+        return cov
+
     def drift_transform(self, T_true_base: np.ndarray, step: int) -> np.ndarray:
         """(4, 4) D with published pose = D @ true pose: the platform believes it is shifted by
         the drift and turned by its heading error about its own position."""

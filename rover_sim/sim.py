@@ -72,9 +72,11 @@ class RoverSim:
         depth = self.sensing.degrade(depth, self.world.intrinsics, step)
         self._step = step
         self._drift = self.sensing.drift_transform(T_base, step)
+        lever = float(np.linalg.norm(T_cam[:2, 3] - T_base[:2, 3]))  # the mast, for heading
         return SensorFrame(step, depth, self.world.intrinsics,
                            Pose.from_matrix(self._drift @ T_cam),
-                           Pose.from_matrix(self._drift @ T_base))
+                           Pose.from_matrix(self._drift @ T_base),
+                           self.sensing.pose_covariance(step, lever))
 
     def restore(self, step: int, path: PlanPath | None) -> None:
         """Redo step ``step`` without rendering (a restarted simulator replaying its past):

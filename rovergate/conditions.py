@@ -15,10 +15,13 @@ learned+fn  S_t + O_hat_t + FN_t                  prediction, ground truth (orac
 truth       O*                                    ground truth (oracle)
 gated       S_t + (O_hat_t - U_t)                 prediction
 gated-ray   S_t + (O_hat_t - U_ray_t)             prediction, depth of every frame
+gated-pose  S_t + (O_hat_t - U_pose_t)            prediction, each pose's covariance
 ========== ==================================== ==========================================
 
 U_ray_t is U_t with ray-consistent exposure: a frame counts only when the ray through the
-point passed it by a margin on a usable return (gate/filter.py, RayGate).
+point passed it by a margin on a usable return (gate/filter.py, RayGate); U_pose_t counts a
+frame only if the point stays in its frustum under the pose's uncertainty, and widens support
+by it (PoseGate).
 """
 
 from __future__ import annotations
@@ -51,6 +54,8 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in [
               withholds=True),
     Condition("gated-ray", "learned through the gate with ray-consistent exposure", True,
               False, withholds=True),
+    Condition("gated-pose", "learned through the gate aware of the pose's uncertainty",
+              True, False, withholds=True),
 ]}
 
 

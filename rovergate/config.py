@@ -192,6 +192,10 @@ class GateConfig:
     """gated-ray: a return from a surface seen at an incidence angle above this (estimated
     from the depth image's gradient) gives no evidence; 90 turns the test off."""
 
+    pose_sigmas: float = 2.0
+    """gated-pose: how many standard deviations of the published pose's covariance a frame
+    must tolerate to expose a point, and by which support is widened (gate/filter.py)."""
+
     def epsilon_m(self, d_scene_m: float) -> float:
         """The support radius epsilon of equation 4, in metres."""
         return self.epsilon_frac * d_scene_m

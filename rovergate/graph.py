@@ -51,6 +51,11 @@ TOPICS: dict[str, Topic] = {
                          "intrinsics (`k`), pixel centres at integers"),
     "pose": Topic("sensor/pose", "geometry_msgs/msg/PoseStamped",
                   "camera pose (optical frame: x right, y down, z forward) in frame `map`"),
+    "pose_cov": Topic("sensor/pose_with_covariance",
+                      "geometry_msgs/msg/PoseWithCovarianceStamped",
+                      "`pose` with its covariance (x, y, z, rotations about x, y, z) as the "
+                      "drift model states it: it grows with the random walk; zeros without "
+                      "drift"),
     "base_pose": Topic("sensor/base_pose", "geometry_msgs/msg/PoseStamped",
                        "rover base (x forward, y left, z up) in frame `map`"),
     "surface": Topic("map/surface", "sensor_msgs/msg/PointCloud2",
@@ -153,7 +158,7 @@ class Module:
 MODULES: dict[str, Module] = {m.name: m for m in [
     Module("sim", "the simulator: drives the path of step t-1, renders step t, serves truth",
            inputs={"tick": Input("status"), "path": Input("path", lag=1)},
-           outputs=("execution", "depth", "camera_info", "pose", "base_pose"),
+           outputs=("execution", "depth", "camera_info", "pose", "pose_cov", "base_pose"),
            stages=("execute", "render"), replay=("path",),
            serves=("truth_surface", "truth_occupancy"),
            reads=("scene", "platform", "start", "seed", "sensor", "sensing", "rover", "flyer",
@@ -165,7 +170,7 @@ MODULES: dict[str, Module] = {m.name: m for m in [
            replay=("depth", "info", "pose", "base"), reads=("condition", "scene", "mapper")),
     Module("gate", "the gate: the planner-facing occupancy of the mission's condition",
            inputs={"surface": Input("surface"), "predicted": Input("predicted"),
-                   "pose": Input("pose"), "info": Input("camera_info"),
+                   "pose": Input("pose_cov"), "info": Input("camera_info"),
                    "depth": Input("depth")},
            outputs=("planner_map",), stages=("gate",), replay=("pose", "info", "depth"),
            asks=("truth_occupancy",),

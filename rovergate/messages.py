@@ -38,6 +38,7 @@ from rovergate.types import (
     PlannerMap,
     PlanPath,
     Pose,
+    PoseWithCovariance,
     StepTiming,
     TelemetryFrame,
 )
@@ -167,6 +168,23 @@ def pose_to_ros(step: int, pose: Pose):
 
 def pose_from_ros(msg) -> tuple[int, Pose]:
     return _step(msg.header), _pose_from_msg(msg.pose)
+
+
+def pose_cov_to_ros(step: int, value: PoseWithCovariance):
+    return _T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+        header=_header(step), pose=_T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=_pose_msg(value.pose),
+            covariance=np.ascontiguousarray(value.covariance, dtype=np.float64).ravel()))
+
+
+def pose_cov_from_ros(msg) -> tuple[int, PoseWithCovariance]:
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64)
+    if cov.shape != (36,) or not np.all(np.isfinite(cov)):
+        raise MessageError("pose covariance must be 36 finite values")
+    cov = cov.reshape(6, 6)
+    if np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T):
+        raise MessageError("pose covariance must be symmetric with a non-negative diagonal")
+    return _step(msg.header), PoseWithCovariance(_pose_from_msg(msg.pose.pose), cov)
 
 
 def path_to_ros(path: PlanPath):
@@ -349,6 +367,7 @@ _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]
     "depth": (lambda v: depth_to_ros(*v), depth_from_ros),
     "camera_info": (lambda v: camera_info_to_ros(*v), camera_info_from_ros),
     "pose": (lambda v: pose_to_ros(*v), pose_from_ros),
+    "pose_cov": (lambda v: pose_cov_to_ros(*v), pose_cov_from_ros),
     "base_pose": (lambda v: pose_to_ros(*v), pose_from_ros),
     "surface": _cloud_codec(SURFACE_DTYPE),
     "predicted": _cloud_codec(PREDICTED_DTYPE),
@@ -401,7 +420,8 @@ def decode_item(kind: str, msgtype: str, payload: bytes) -> Any:
 
 
 #: Topics whose value is written ``(step, value)``; the others carry their step themselves.
-_STEP_PAIRS = frozenset({"depth", "camera_info", "pose", "base_pose", "surface", "predicted",
+_STEP_PAIRS = frozenset({"depth", "camera_info", "pose", "pose_cov", "base_pose", "surface",
+                         "predicted",
                          "truth_surface", "truth_occupancy"})
 
 

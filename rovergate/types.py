@@ -85,6 +85,25 @@ class CameraIntrinsics:
 
 
 @dataclass
+class PoseWithCovariance:
+    """A pose and its (6, 6) covariance: x, y, z in m², then rotations about x, y, z in rad²
+    (``geometry_msgs/msg/PoseWithCovariance``'s order)."""
+
+    pose: Pose
+    covariance: np.ndarray
+
+    @property
+    def position_sd_m(self) -> float:
+        """The largest standard deviation of the position, in any direction."""
+        return float(np.sqrt(max(np.linalg.eigvalsh(self.covariance[:3, :3]).max(), 0.0)))
+
+    @property
+    def rotation_sd_rad(self) -> float:
+        """The largest standard deviation of the rotation, about any axis."""
+        return float(np.sqrt(max(np.linalg.eigvalsh(self.covariance[3:, 3:]).max(), 0.0)))
+
+
+@dataclass
 class SensorFrame:
     """What the rover senses at one planning step."""
 
@@ -94,6 +113,8 @@ class SensorFrame:
     intrinsics: CameraIntrinsics
     T_map_camera: Pose
     T_map_base: Pose
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    """(6, 6) covariance of the published camera pose (drift model; zeros without drift)."""
 
 
 #: dtype of one point of the observed surface S_t on ``map/surface``.

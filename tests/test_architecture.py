@@ -27,7 +27,7 @@ def test_the_graph_is_consistent_and_everything_derives_from_it():
     assert graph.stage_module() == {"execute": "sim", "render": "sim", "integrate": "mapper",
                                     "gate": "gate", "plan": "planner"}
     # The journal keeps every step of what modules replay, the last steps of the rest.
-    assert {"status", "path", "depth", "camera_info", "pose", "base_pose",
+    assert {"status", "path", "depth", "camera_info", "pose", "pose_cov", "base_pose",
             "execution"} == KEEP_ALL
     assert {"surface", "predicted", "planner_map"} == KEEP_LAST
     assert {m.name: m.progress for m in graph.MODULES.values() if m.launched} == {

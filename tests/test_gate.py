@@ -126,6 +126,7 @@ def test_every_condition_composes_as_equation_2(name):
         "truth": {0: 0, 1: 0, 2: 0, 3: 3},
         "gated": {0: 1, 1: 2, 2: 0, 3: 0},        # one frustum only: nothing suppressed yet
         "gated-ray": {0: 1, 1: 2, 2: 0, 3: 0},    # likewise
+        "gated-pose": {0: 1, 1: 2, 2: 0, 3: 0},   # likewise
     }[name]
     assert counts == expected
 
@@ -349,3 +350,89 @@ def test_gated_ray_condition_withholds_through_the_ray_gate():
         out = gate.step(_mapped(no_surface, pred), pose, K, wall(6.0))
     kept = out.points[out.points["source"] == Source.PREDICTED]
     assert out.suppressed == 1 and kept["x"].tolist() == [8.0]
+
+
+# --- gated-pose: exposure and support under the pose's uncertainty -------------------------
+
+
+def make_pose_gate(k=1, eps=0.5, sigmas=2.0):
+    from gate.filter import PoseGate
+    return PoseGate(k=k, epsilon_m=eps, min_range_m=0.3, max_range_m=20.0, sigmas=sigmas)
+
+
+def cov(sd_pos: float, sd_yaw: float = 0.0) -> np.ndarray:
+    return np.diag([sd_pos ** 2] * 3 + [0.0, 0.0, sd_yaw ** 2])
+
+
+def test_without_uncertainty_the_pose_gate_is_the_frustum_gate():
+    rng = np.random.default_rng(11)
+    pose, frustum = make_pose_gate(k=2, eps=0.8), make_gate(k=2, eps=0.8)
+    for x in rng.uniform(-1, 1, 20):
+        for g in (pose, frustum):
+            g.add_frame(camera_looking_along_x(x), K, FAR, np.zeros((6, 6)))
+    pts = rng.uniform([-2, -8, -3], [22, 8, 3], (2000, 3))
+    surface = rng.uniform([-2, -8, -3], [22, 8, 3], (300, 3))
+    assert np.array_equal(pose.exposure_counts(pts), frustum.exposure_counts(pts))
+    assert np.array_equal(pose.unsupported(pts, surface), frustum.unsupported(pts, surface))
+
+
+def test_a_point_the_uncertain_pose_may_not_have_seen_is_not_exposed():
+    """Near the image's edge, near the far range, or with a heading error wider than the
+    margin to the edge: the frustum gate counts them; the pose gate does not."""
+    half_width = 10.0 * np.tan(np.radians(45.0) / 2) * K.width / K.height  # at 10 m
+    edge = np.array([[10.0, -(half_width - 0.2), 1.0]], dtype=np.float32)   # 0.2 m inside
+    far = np.array([[19.8, 0.0, 1.0]], dtype=np.float32)
+    for c, pts, counted in ((cov(0.2), edge, 0), (cov(0.2), far, 0), (cov(0.0, 0.05), edge, 0),
+                            (cov(0.01), TARGET, 1)):
+        g = make_pose_gate()
+        g.add_frame(camera_looking_along_x(), K, FAR, c)
+        assert g.exposure_counts(pts).tolist() == [counted], (c.diagonal(), pts)
+        f = make_gate()
+        f.add_frame(camera_looking_along_x(), K, FAR)
+        assert f.exposure_counts(pts).tolist() == [1]
+
+
+def test_pose_widened_support_keeps_what_a_drifted_frame_would_drop():
+    """The surface lies 0.6 m from a predicted point (epsilon 0.5): the frustum gate drops
+    the point; with a position standard deviation of 0.1 m (support within 0.5 + 2 x 0.1)
+    the pose gate keeps it, and with none it drops it too."""
+    surface = TARGET + np.array([[0.0, 0.6, 0.0]], dtype=np.float32)
+    for sd, dropped in ((0.1, False), (0.0, True)):
+        g = make_pose_gate(k=2)
+        for _ in range(2):
+            g.add_frame(camera_looking_along_x(), K, FAR, cov(sd))
+        assert g.unsupported(TARGET, surface).tolist() == [dropped]
+    f = make_gate(k=2)
+    for _ in range(2):
+        f.add_frame(camera_looking_along_x(), K, FAR)
+    assert f.unsupported(TARGET, surface).tolist() == [True]
+
+
+def test_pose_gate_equals_its_rule_computed_point_by_point():
+    rng = np.random.default_rng(13)
+    g = make_pose_gate(k=2, eps=0.8, sigmas=2.0)
+    frames = []
+    for _ in range(15):
+        T = camera_looking_along_x(rng.uniform(-1, 1))
+        c = cov(rng.uniform(0, 0.3), rng.uniform(0, 0.05))
+        g.add_frame(T, K, FAR, c)
+        frames.append((T, 2 * np.sqrt(c[0, 0]), 2 * np.sqrt(c[5, 5])))
+    pts = rng.uniform([-2, -8, -3], [22, 8, 3], (1500, 3))
+    surface = rng.uniform([-2, -8, -3], [22, 8, 3], (300, 3))
+    expected_counts = np.zeros(len(pts), dtype=int)
+    for T, r, a in frames:
+        R = T[:3, :3].T
+        for i, p in enumerate(pts):
+            x, y, z = R @ (p - T[:3, 3])
+            if not (z - r >= 0.3 and z + r <= 20.0):
+                continue
+            m = r / (z - r) + np.tan(a)
+            u, v = K.fx * x / z + K.cx, K.fy * y / z + K.cy
+            expected_counts[i] += (-0.5 + K.fx * m <= u < K.width - 0.5 - K.fx * m
+                                   and -0.5 + K.fy * m <= v < K.height - 0.5 - K.fy * m)
+    assert np.array_equal(g.exposure_counts(pts), expected_counts)
+    radius = 0.8 + frames[-1][1]
+    dist = np.min(np.linalg.norm(pts[:, None] - surface[None], axis=2), axis=1)
+    expected = (expected_counts >= 2) & (dist > radius)
+    assert 0 < expected.sum() < len(pts)
+    assert np.array_equal(g.unsupported(pts, surface), expected)

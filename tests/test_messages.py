@@ -22,6 +22,7 @@ from rovergate.types import (
     PlannerMap,
     PlanPath,
     Pose,
+    PoseWithCovariance,
     StepTiming,
     TelemetryFrame,
 )
@@ -44,6 +45,7 @@ VALUES = {
     "depth": (7, depth),
     "camera_info": (7, CameraIntrinsics.from_fov(16, 12, 45.0)),
     "pose": (7, pose),
+    "pose_cov": (7, PoseWithCovariance(pose, np.diag([0.04, 0.04, 0.01, 0.0, 0.0, 0.003]))),
     "base_pose": (7, Pose.from_xyz_yaw(1.0, 2.0, 0.5, 0.7)),
     "surface": (7, _cloud(SURFACE_DTYPE)),
     "predicted": (7, _cloud(PREDICTED_DTYPE)),
