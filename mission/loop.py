@@ -117,9 +117,10 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 withholds = get_condition(condition).withholds
                 record.suppressed.append(len(predicted) - len(kept) if withholds else 0)
                 if withholds:
-                    record.suppressed_fp.append(suppression_audit(
-                        predicted, xyz(kept), judge.reference, cfg.oracle_delta_m,
-                        judge.tree)[1])
+                    _, withheld_fp, predicted_fp = suppression_audit(
+                        predicted, xyz(kept), judge.reference, cfg.oracle_delta_m, judge.tree)
+                    record.suppressed_fp.append(withheld_fp)
+                    record.predicted_fp.append(predicted_fp)
                 record.collision_class.append(collision_class(
                     report, planner_map, cfg, previous_base))
                 contacts = np.array([e.contact for e in record.executions[:-1]

@@ -6,7 +6,8 @@
   coverage for the same scene, start and repetition. A run that never reaches it counts as
   T + 1 (one step past the horizon, a censored value), and the study reports how many did not.
 - The gate's audit (:func:`suppression_audit`, evaluation only): how many of the points the
-  gate withheld were true false positives, farther than delta from the reference surface.
+  gate withheld were true false positives, farther than delta from the reference surface
+  (precision), and how many of the prediction's false positives it withheld (recall).
 """
 
 from __future__ import annotations
@@ -47,22 +48,23 @@ def _rows(points: np.ndarray) -> np.ndarray:
 
 def suppression_audit(predicted_xyz: np.ndarray, kept_xyz: np.ndarray,
                       reference_xyz: np.ndarray, delta_m: float,
-                      reference_tree: cKDTree | None = None) -> tuple[int, int]:
-    """(withheld, withheld false positives) of one step.
+                      reference_tree: cKDTree | None = None) -> tuple[int, int, int]:
+    """(withheld, withheld false positives, false positives in the prediction) of one step.
 
     Withheld are the predicted points that did not reach the planner (``kept_xyz`` are the
-    predicted points of the planner-facing map); a withheld point is a true false positive
-    when no reference point lies within ``delta_m`` (the paper's oracle tag). A mission passes
-    ``reference_tree``, a k-d tree of ``reference_xyz`` built once.
+    predicted points of the planner-facing map); a predicted point is a true false positive
+    when no reference point lies within ``delta_m`` (the paper's oracle tag). The gate's
+    suppression precision is the second over the first, its recall the second over the
+    third. A mission passes ``reference_tree``, a k-d tree of ``reference_xyz`` built once.
     """
     if len(predicted_xyz) == 0:
-        return 0, 0
+        return 0, 0, 0
     withheld = ~np.isin(_rows(predicted_xyz), _rows(kept_xyz))
-    n = int(withheld.sum())
-    if n == 0:
-        return 0, 0
     if len(reference_xyz) == 0:
-        return n, n
-    tree = reference_tree if reference_tree is not None else cKDTree(reference_xyz)
-    d, _ = tree.query(predicted_xyz[withheld], distance_upper_bound=delta_m)
-    return n, int(np.count_nonzero(d > delta_m))
+        false_positive = np.ones(len(predicted_xyz), dtype=bool)
+    else:
+        tree = reference_tree if reference_tree is not None else cKDTree(reference_xyz)
+        d, _ = tree.query(predicted_xyz, distance_upper_bound=delta_m)
+        false_positive = d > delta_m
+    return (int(withheld.sum()), int(np.count_nonzero(withheld & false_positive)),
+            int(false_positive.sum()))

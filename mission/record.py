@@ -38,6 +38,8 @@ class MissionRecord:
     """Predicted points the gate withheld from the planner at each step 0..T-1."""
     suppressed_fp: list[int] = field(default_factory=list)
     """Of those, the true false positives (evaluation only; gated runs)."""
+    predicted_fp: list[int] = field(default_factory=list)
+    """The prediction's true false positives at each step (evaluation only; gated runs)."""
     predicted_points: list[int] = field(default_factory=list)
     """Size of the thresholded prediction O_hat_t at each step 0..T-1."""
     planner_predicted: list[int] = field(default_factory=list)
@@ -116,4 +118,18 @@ class MissionRecord:
             "suppressed_fp_per_step": self.suppressed_fp,
             "suppressed_fp_share": (sum(self.suppressed_fp) / sum(self.suppressed)
                                     if self.suppressed_fp and sum(self.suppressed) else None),
+            # The gate's audit (evaluation only), per step and pooled over the mission:
+            # precision = withheld false positives / withheld, recall = withheld false
+            # positives / the prediction's false positives (None where undefined).
+            "predicted_fp_per_step": self.predicted_fp,
+            "suppression_precision_per_step": [
+                fp / n if n else None for fp, n in zip(self.suppressed_fp, self.suppressed,
+                                                       strict=False)],
+            "suppression_recall_per_step": [
+                fp / n if n else None for fp, n in zip(self.suppressed_fp, self.predicted_fp,
+                                                       strict=True)],
+            "suppression_recall": (sum(self.suppressed_fp) / sum(self.predicted_fp)
+                                   if self.predicted_fp and sum(self.predicted_fp) else None),
+            "wrongly_withheld_per_step": [n - fp for fp, n in zip(
+                self.suppressed_fp, self.suppressed, strict=False)],
         }

@@ -127,6 +127,9 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             "suppressed_per_step": (_mean(held) if get_condition(s.condition).withholds
                                     else None),
             "suppressed_fp_share": m.get("suppressed_fp_share"),
+            "suppression_recall": m.get("suppression_recall"),
+            "wrongly_withheld_per_step": (_mean(m.get("wrongly_withheld_per_step") or [None])
+                                          if get_condition(s.condition).withholds else None),
             "wall_s": m["wall_s"], "median_step_s": m["median_step_s"],
             **{f"{k}_s": stage.get(k) for k in STAGES},
             # Failure modes; runs written before these keys existed lack them (None, "—").

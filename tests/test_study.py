@@ -48,9 +48,10 @@ def test_suppression_audit_counts_withheld_points_and_true_false_positives():
                           [6.0, 5.0, 5.0]],   # far, kept
                          dtype=np.float32)
     kept = predicted[[0, 3]]
-    assert suppression_audit(predicted, kept, reference, delta_m=0.5) == (2, 1)
-    assert suppression_audit(predicted, predicted, reference, delta_m=0.5) == (0, 0)
-    assert suppression_audit(predicted[:0], kept, reference, delta_m=0.5) == (0, 0)
+    # Withheld 2, of which 1 false positive, of the prediction's 2 false positives.
+    assert suppression_audit(predicted, kept, reference, delta_m=0.5) == (2, 1, 2)
+    assert suppression_audit(predicted, predicted, reference, delta_m=0.5) == (0, 0, 2)
+    assert suppression_audit(predicted[:0], kept, reference, delta_m=0.5) == (0, 0, 0)
 
 
 def test_bootstrap_interval_brackets_the_mean_and_is_seeded():
