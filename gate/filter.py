@@ -168,15 +168,19 @@ class RayGate(ObservationGate):
         counts = np.zeros(len(points_map), dtype=np.int32)
         active = np.arange(len(points_map))
         p_all = np.asarray(points_map, dtype=np.float64)
-        for R, t, k, d in self._frames:
+        for f in range(len(self._frames)):
             if stop_at is not None:
                 active = active[counts[active] < stop_at]
             if len(active) == 0:
                 break
-            idx, v, u, z = pixels(p_all[active], R, t, k, self.min_range_m, self.max_range_m)
-            passed = d[v, u] >= z + self.margin_m  # NaN (no usable return): False
-            counts[active[idx[passed]]] += 1
+            counts[active[self._passed(f, p_all[active])]] += 1
         return counts
+
+    def _passed(self, f: int, points: np.ndarray) -> np.ndarray:
+        """Indices into ``points`` of those frame ``f``'s rays passed through."""
+        R, t, k, d = self._frames[f]
+        idx, v, u, z = pixels(points, R, t, k, self.min_range_m, self.max_range_m)
+        return idx[d[v, u] >= z + self.margin_m]  # NaN (no usable return): False
 
 
 class PoseGate(ObservationGate):
@@ -237,3 +241,58 @@ class PoseGate(ObservationGate):
             ok &= (v >= -0.5 + mv) & (v < k.height - 0.5 - mv)
             counts[active[ok]] += 1
         return counts
+
+
+class SplitGate(RayGate):
+    """Separate evidence for the planner's two uses of the map (the ``gated-split``
+    condition).
+
+    - Gain channel (what attracts the planner): a predicted point with no support within
+      epsilon is withheld after K frames whose rays passed through it (:class:`RayGate`).
+      Withholding it wrongly costs a view not taken.
+    - Collision channel (what blocks it): withheld only when rays from two viewpoints at
+      least ``baseline_m`` apart passed through it, with no support. Withholding it wrongly
+      costs a collision, so the evidence must be free space seen from two places, not one
+      viewpoint's rays, which a drifted pose or a repeated error could make consistent.
+
+    With K = 2 (the default) the collision channel withholds a subset of what the gain
+    channel does: a point may attract no longer and still block.
+    """
+
+    def __init__(self, k: int, epsilon_m: float, min_range_m: float, max_range_m: float,
+                 margin_m: float, grazing_max_deg: float, baseline_m: float) -> None:
+        if baseline_m < 0:
+            raise ValueError(f"the split gate needs a baseline >= 0, got {baseline_m}")
+        super().__init__(k, epsilon_m, min_range_m, max_range_m, margin_m, grazing_max_deg)
+        self.baseline_m = baseline_m
+        self._centres: list[np.ndarray] = []
+
+    def add_frame(self, T_map_camera: np.ndarray, k: CameraIntrinsics, depth: np.ndarray,
+                  covariance: np.ndarray | None = None) -> None:
+        super().add_frame(T_map_camera, k, depth, covariance)
+        self._centres.append(np.asarray(T_map_camera[:3, 3], dtype=np.float64))
+
+    def seen_through_from_two_places(self, points_map: np.ndarray) -> np.ndarray:
+        """(N,) bool: rays of two frames whose cameras were at least ``baseline_m`` apart
+        passed through the point."""
+        p = np.asarray(points_map, dtype=np.float64)
+        passed = np.zeros((len(self._frames), len(p)), dtype=bool)
+        for f in range(len(self._frames)):
+            passed[f, self._passed(f, p)] = True
+        out = np.zeros(len(p), dtype=bool)
+        centres = np.array(self._centres).reshape(-1, 3)
+        for i in np.flatnonzero(passed.sum(axis=0) >= 2):
+            c = centres[passed[:, i]]
+            gaps = np.linalg.norm(c[:, None] - c[None], axis=2)
+            out[i] = bool((gaps >= self.baseline_m).any())
+        return out
+
+    def withheld(self, points_map: np.ndarray, surface_map: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) bool masks: withheld from the gain channel, and from the collision channel."""
+        gain = self.unsupported(points_map, surface_map)
+        collision = np.zeros(len(points_map), dtype=bool)
+        candidates = np.flatnonzero(
+            self.support_distance(points_map, surface_map) > self.support_radius_m)
+        collision[candidates] = self.seen_through_from_two_places(points_map[candidates])
+        return gain, collision

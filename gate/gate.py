@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gate.filter import ObservationGate, PoseGate, RayGate
+from gate.filter import ObservationGate, PoseGate, RayGate, SplitGate
 from gate.views import ViewCounter, as_views
 from rovergate.conditions import get_condition
 from rovergate.config import GateConfig, SensorConfig
@@ -16,6 +16,7 @@ from rovergate.spatial import kdtree
 from rovergate.types import (
     PLANNER_DTYPE,
     CameraIntrinsics,
+    Channel,
     MapperOutput,
     PlannerMap,
     Pose,
@@ -71,6 +72,8 @@ class Gate:
             "gated-ray": lambda: RayGate(cfg.k, eps, near, far, cfg.ray_margin_m,
                                          cfg.ray_grazing_max_deg),
             "gated-pose": lambda: PoseGate(cfg.k, eps, near, far, cfg.pose_sigmas),
+            "gated-split": lambda: SplitGate(cfg.k, eps, near, far, cfg.ray_margin_m,
+                                             cfg.ray_grazing_max_deg, cfg.split_baseline_m),
         }.get(condition, lambda: ObservationGate(cfg.k, eps, near, far))()
         self.views = ViewCounter(sensor.min_range_m, sensor.max_range_m, view_tolerance_m)
 
@@ -102,9 +105,16 @@ class Gate:
         pred = xyz(mapped.predicted)
         pred = pred[in_region(pred, self.bounds_m)]
         keep = np.ones(len(pred), dtype=bool)
+        channels = np.full(len(pred), Channel.BOTH, dtype=np.uint8)
         extra = np.zeros((0, 3), dtype=np.float32)
         suppressed = 0
-        if self.condition.withholds:
+        if name == "gated-split":
+            no_gain, no_collision = self.filter.withheld(pred, s_xyz)
+            channels -= (no_gain * Channel.GAIN + no_collision * Channel.COLLISION).astype(
+                np.uint8)
+            keep = channels != 0
+            suppressed = int(no_gain.sum())
+        elif self.condition.withholds:
             unsupported = self.filter.unsupported(pred, s_xyz)
             keep = ~unsupported
             suppressed = int(unsupported.sum())
@@ -117,7 +127,8 @@ class Gate:
         pred = pred[keep]
         parts = [observed,
                  make_cloud(pred, PLANNER_DTYPE, source=Source.PREDICTED,
-                            views=as_views(self.views.views_keyed("predicted", pred))),
+                            views=as_views(self.views.views_keyed("predicted", pred)),
+                            channels=channels[keep]),
                  make_cloud(extra, PLANNER_DTYPE, source=Source.ORACLE_FN,
                             views=as_views(self.views.views_keyed("oracle", extra)))]
         return PlannerMap(mapped.step, np.concatenate(parts), suppressed)

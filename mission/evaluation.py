@@ -34,7 +34,15 @@ from planner.platforms import motion_model
 from rovergate.config import MissionConfig
 from rovergate.geometry import camera_from_base, voxel_first_points
 from rovergate.spatial import kdtree
-from rovergate.types import ExecutionReport, PlannerMap, PlanPath, Pose, Source, xyz
+from rovergate.types import (
+    Channel,
+    ExecutionReport,
+    PlannerMap,
+    PlanPath,
+    Pose,
+    Source,
+    xyz,
+)
 
 STUCK_WINDOW = 10
 """Steps over which net progress is measured."""
@@ -62,6 +70,7 @@ def collision_class(report: ExecutionReport, planner_map: PlannerMap, cfg: Missi
         return None
     if report.contact is None:
         return PLANNER_FAULT
+    planner_map = planner_map.serving(Channel.COLLISION)  # what the planner checked against
     points = xyz(planner_map.points)
     if cfg.platform == "rover" and len(points):
         # What the rover's collision model counts as an obstacle (not the ground it reads).
@@ -121,11 +130,14 @@ class StepEvaluator:
         ``rejected`` None: the planner does not say what it rejected; ``contacts``: the
         contact points the planner knew)."""
         cfg = self.cfg
-        fp = self.false_positives(planner_map)
-        points = xyz(planner_map.points)
+        # The share of gain on what the gain saw; the blocked candidates on what blocked them
+        # (the two channels of the map, one and the same but under gated-split).
+        gain_map = planner_map.serving(Channel.GAIN)
+        fp = self.false_positives(gain_map)
+        points = xyz(gain_map.points)
         share = None if fp.any() else 0.0  # no false positive in the map: no share of gain
         goal = path.poses[-1] if path.poses else T_map_base
-        novel = novel_mask(planner_map, cfg.planner.observed_min_views)
+        novel = novel_mask(gain_map, cfg.planner.observed_min_views)
         if share is None and (novel & fp).any():
             cam = camera_from_base(goal.matrix(), cfg.sensor, cfg.platform)
             # Only primitives within the sensor's depth range take part in the render (the
@@ -141,6 +153,9 @@ class StepEvaluator:
         elif share is None:
             share = 0.0  # no novel false positive: none of the gain comes from one
         blocked = None if rejected is None else 0
+        planner_map = planner_map.serving(Channel.COLLISION)
+        fp = self.false_positives(planner_map)
+        points = xyz(planner_map.points)
         if rejected is not None and fp.any() and rejected.poses:
             # Occupancy alone, on the map and on the map without its false positives, from
             # where the planner planned (its escape, its contacts; known free space does not

@@ -30,7 +30,7 @@ from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig
 from rovergate.geometry import in_region
 from rovergate.module import STOP
-from rovergate.types import MissionStatus, Source, xyz
+from rovergate.types import Channel, MissionStatus, Source, xyz
 
 if TYPE_CHECKING:
     from mission.operations import Operations
@@ -109,7 +109,10 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 predicted = xyz(transport.receive("predicted", t - 1))
                 predicted = predicted[in_region(predicted, cfg.scene.bounds_m)]
                 planner_map = transport.receive("planner_map", t - 1)
-                kept = planner_map.points[planner_map.points["source"] == Source.PREDICTED]
+                # What the gate passed on to the gain (under gated-split the collision channel
+                # keeps more; every other condition passes the same to both).
+                attracting = planner_map.serving(Channel.GAIN).points
+                kept = attracting[attracting["source"] == Source.PREDICTED]
                 record.predicted_points.append(len(predicted))
                 record.planner_predicted.append(len(kept))
                 # The map carries no count of what the gate withheld; under the gate, what it

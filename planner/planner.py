@@ -18,7 +18,15 @@ from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
 from rovergate.config import MissionConfig
 from rovergate.errors import UnknownNameError
-from rovergate.types import CameraIntrinsics, PlannerMap, PlanPath, Pose, Source, xyz
+from rovergate.types import (
+    CameraIntrinsics,
+    Channel,
+    PlannerMap,
+    PlanPath,
+    Pose,
+    Source,
+    xyz,
+)
 
 
 @dataclass
@@ -56,13 +64,17 @@ class Planner(abc.ABC):
         """One step's motion model, random generator (seeded by seed and step) and gain field,
         all read from the same planner-facing map."""
         cfg, pc = self.cfg, self.cfg.planner
-        points = xyz(occupancy.points)
-        model = motion_model(cfg, points, T_map_base,
-                             predicted=occupancy.points["source"] == Source.PREDICTED, free=free,
+        # Each use of the map sees the points that serve it (gated-split keeps apart what
+        # attracts and what blocks; every other condition gives both all of its points).
+        blocking = occupancy.serving(Channel.COLLISION)
+        attracting = occupancy.serving(Channel.GAIN)
+        model = motion_model(cfg, xyz(blocking.points), T_map_base,
+                             predicted=blocking.points["source"] == Source.PREDICTED, free=free,
                              contacts=contacts)
         model.leave_blocked_start()
         rng = np.random.default_rng([cfg.seed, step])
-        return model, rng, gain_field(cfg, points, novel_mask(occupancy, pc.observed_min_views))
+        return model, rng, gain_field(cfg, xyz(attracting.points),
+                                      novel_mask(attracting, pc.observed_min_views))
 
 
 def gain_field(cfg: MissionConfig, points: np.ndarray, novel: np.ndarray) -> GainField:

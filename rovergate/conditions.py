@@ -16,12 +16,14 @@ truth       O*                                    ground truth (oracle)
 gated       S_t + (O_hat_t - U_t)                 prediction
 gated-ray   S_t + (O_hat_t - U_ray_t)             prediction, depth of every frame
 gated-pose  S_t + (O_hat_t - U_pose_t)            prediction, each pose's covariance
+gated-split gain: S_t + (O_hat_t - U_ray_t);       prediction, depth of every frame
+            collision: S_t + (O_hat_t - U_2view_t)
 ========== ==================================== ==========================================
 
 U_ray_t is U_t with ray-consistent exposure: a frame counts only when the ray through the
 point passed it by a margin on a usable return (gate/filter.py, RayGate); U_pose_t counts a
 frame only if the point stays in its frustum under the pose's uncertainty, and widens support
-by it (PoseGate).
+by it (PoseGate); U_2view_t needs rays from two camera positions apart (SplitGate).
 """
 
 from __future__ import annotations
@@ -56,6 +58,8 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in [
               False, withholds=True),
     Condition("gated-pose", "learned through the gate aware of the pose's uncertainty",
               True, False, withholds=True),
+    Condition("gated-split", "learned with separate evidence for gain and collision", True,
+              False, withholds=True),
 ]}
 
 

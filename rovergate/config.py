@@ -192,6 +192,9 @@ class GateConfig:
     """gated-ray: a return from a surface seen at an incidence angle above this (estimated
     from the depth image's gradient) gives no evidence; 90 turns the test off."""
 
+    split_baseline_m: float = 0.5
+    """gated-split: the collision channel withholds a prediction only when rays from two
+    camera positions at least this far apart passed through it (gate/filter.py)."""
     pose_sigmas: float = 2.0
     """gated-pose: how many standard deviations of the published pose's covariance a frame
     must tolerate to expose a point, and by which support is widened (gate/filter.py)."""

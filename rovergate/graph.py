@@ -67,7 +67,8 @@ TOPICS: dict[str, Topic] = {
                        "in conditions that do not use it"),
     "planner_map": Topic("map/occupancy/planner", "sensor_msgs/msg/PointCloud2",
                          "planner-facing occupancy: float32 `x, y, z`; uint8 `source`; "
-                         "uint16 `views`"),
+                         "uint16 `views`; uint8 `channels` (1: gain, 2: collision checking; "
+                         "3 but under gated-split)"),
     "path": Topic("plan/path", "nav_msgs/msg/Path",
                   "rover base poses of the next motion; the first is the current pose"),
     "rejected": Topic("plan/rejected", "nav_msgs/msg/Path",

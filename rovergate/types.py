@@ -123,9 +123,20 @@ SURFACE_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("views", "<
 PREDICTED_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("probability", "<f4")])
 #: dtype of one point of the planner-facing occupancy on ``map/occupancy/planner``.
 PLANNER_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                          ("source", "u1"), ("views", "<u2")])
+                          ("source", "u1"), ("views", "<u2"), ("channels", "u1")])
 #: dtype of ground-truth point clouds on ``truth/...``.
 XYZ_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+
+
+class Channel:
+    """Bits of the ``channels`` field of the planner-facing occupancy: which of the planner's
+    two uses of the map a point serves. Every condition but ``gated-split`` sets both."""
+
+    GAIN = 1
+    """The surface gain of candidate views (what attracts the planner)."""
+    COLLISION = 2
+    """Collision checking of motions (what blocks it)."""
+    BOTH = GAIN | COLLISION
 
 
 class Source:
@@ -153,6 +164,8 @@ def make_cloud(points_xyz: np.ndarray, dtype: np.dtype, **fields: np.ndarray) ->
     """Structured cloud of ``dtype`` from (N, 3) coordinates and per-point fields."""
     out = np.zeros(len(points_xyz), dtype=dtype)
     out["x"], out["y"], out["z"] = points_xyz[:, 0], points_xyz[:, 1], points_xyz[:, 2]
+    if "channels" in dtype.names:  # a planner-facing point serves both unless told
+        out["channels"] = Channel.BOTH
     for name, values in fields.items():
         out[name] = values
     return out
@@ -177,7 +190,14 @@ class PlannerMap:
     points: np.ndarray
     """Structured (N,) :data:`PLANNER_DTYPE`."""
     suppressed: int = 0
-    """Predicted points the gate suppressed this step (0 when no gate runs)."""
+    """Predicted points the gate suppressed this step (0 when no gate runs; under
+    ``gated-split``, those withheld from the gain channel)."""
+
+    def serving(self, channel: int) -> PlannerMap:
+        """The map as one of the planner's uses sees it: the points that serve ``channel``
+        (:class:`Channel`)."""
+        return PlannerMap(self.step, self.points[(self.points["channels"] & channel) != 0],
+                          self.suppressed)
 
 
 @dataclass

@@ -75,7 +75,7 @@ def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path, la
     assert mission.finish() == 0, mission.text[-3000:]
     schema, msg = got[0]
     assert schema == "application/cdr;sensor_msgs/msg/PointCloud2"
-    assert [f.name for f in msg.fields] == ["x", "y", "z", "source", "views"]
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "source", "views", "channels"]
     assert msg.width > 1000 and msg.header.frame_id == "map"
     xyz = np.frombuffer(msg.data.tobytes(), dtype=np.dtype(
         {"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8],

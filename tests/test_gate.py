@@ -14,6 +14,7 @@ from rovergate.types import (
     PREDICTED_DTYPE,
     SURFACE_DTYPE,
     CameraIntrinsics,
+    Channel,
     MapperOutput,
     Pose,
     Source,
@@ -127,6 +128,7 @@ def test_every_condition_composes_as_equation_2(name):
         "gated": {0: 1, 1: 2, 2: 0, 3: 0},        # one frustum only: nothing suppressed yet
         "gated-ray": {0: 1, 1: 2, 2: 0, 3: 0},    # likewise
         "gated-pose": {0: 1, 1: 2, 2: 0, 3: 0},   # likewise
+        "gated-split": {0: 1, 1: 2, 2: 0, 3: 0},  # likewise
     }[name]
     assert counts == expected
 
@@ -436,3 +438,72 @@ def test_pose_gate_equals_its_rule_computed_point_by_point():
     expected = (expected_counts >= 2) & (dist > radius)
     assert 0 < expected.sum() < len(pts)
     assert np.array_equal(g.unsupported(pts, surface), expected)
+
+
+# --- gated-split: separate evidence for the gain and the collision channel ------------------
+
+
+def make_split_gate(k=2, eps=0.5, baseline=0.5):
+    from gate.filter import SplitGate
+    return SplitGate(k=k, epsilon_m=eps, min_range_m=0.3, max_range_m=20.0, margin_m=0.3,
+                     grazing_max_deg=75.0, baseline_m=baseline)
+
+
+def test_split_channels_need_two_places_to_unblock():
+    """Seen through twice from one place: the point attracts no longer (gain withheld) but
+    still blocks; seen through from a second place 1 m away: withheld from both; with
+    support: from neither."""
+    point = np.array([[8.0, 0.0, 1.0]], dtype=np.float32)
+    no_surface = np.zeros((0, 3), np.float32)
+    g = make_split_gate()
+    for _ in range(2):
+        g.add_frame(camera_looking_along_x(0.0), K, wall(15.0))
+    gain, collision = g.withheld(point, no_surface)
+    assert (gain.tolist(), collision.tolist()) == ([True], [False])
+    g.add_frame(camera_looking_along_x(1.0), K, wall(15.0))
+    gain, collision = g.withheld(point, no_surface)
+    assert (gain.tolist(), collision.tolist()) == ([True], [True])
+    gain, collision = g.withheld(point, point + [[0, 0.2, 0]])
+    assert (gain.tolist(), collision.tolist()) == ([False], [False])
+    # An occluded point is never seen through, from anywhere.
+    hidden = make_split_gate()
+    for x in (0.0, 1.0, 2.0):
+        hidden.add_frame(camera_looking_along_x(x), K, wall(5.0 - x))
+    assert [m.tolist() for m in hidden.withheld(point, no_surface)] == [[False], [False]]
+
+
+def test_split_gate_equals_its_rule_computed_point_by_point():
+    rng = np.random.default_rng(17)
+    g = make_split_gate(k=2, eps=0.8, baseline=0.8)
+    frames = []
+    for _ in range(10):
+        T = camera_looking_along_x(rng.uniform(-1, 1))
+        depth = rng.uniform(2, 19, (K.height // 8, K.width // 8)).repeat(8, 0).repeat(8, 1)
+        g.add_frame(T, K, depth.astype(np.float32))
+        frames.append(T)
+    pts = rng.uniform([-2, -8, -3], [15, 8, 3], (800, 3))
+    surface = rng.uniform([-2, -8, -3], [15, 8, 3], (200, 3))
+    dist = np.min(np.linalg.norm(pts[:, None] - surface[None], axis=2), axis=1)
+    centres = []
+    for i in range(len(pts)):
+        centres.append([T[:3, 3] for f, T in enumerate(frames)
+                        if len(g._passed(f, pts[i:i + 1]))])
+    two = np.array([any(np.linalg.norm(a - b) >= 0.8 for a in c for b in c) for c in centres])
+    gain, collision = g.withheld(pts, surface)
+    assert np.array_equal(gain, (np.array([len(c) for c in centres]) >= 2) & (dist > 0.8))
+    assert np.array_equal(collision, two & (dist > 0.8))
+    assert 0 < collision.sum() < gain.sum()
+
+
+def test_gated_split_marks_each_point_with_the_channels_it_serves():
+    gate = new_gate("gated-split")  # epsilon 0.3 m, K 2, baseline 0.5 m
+    pred = np.array([[8.0, 0, 1], [8.0, 3.0, 1]], dtype=np.float32)
+    no_surface = np.zeros((0, 3), np.float32)
+    for x in (0.0, 0.0):
+        out = gate.step(_mapped(no_surface, pred), Pose.from_matrix(camera_looking_along_x(x)),
+                        K, wall(15.0))
+    predicted = out.points[out.points["source"] == Source.PREDICTED]
+    assert predicted["channels"].tolist() == [Channel.COLLISION, Channel.COLLISION]
+    assert out.suppressed == 2
+    assert len(out.serving(Channel.GAIN).points) == len(out.points) - 2
+    assert len(out.serving(Channel.COLLISION).points) == len(out.points)

@@ -137,6 +137,32 @@ def test_planners_move_towards_novel_points_and_are_deterministic(planner):
     assert abs(np.cos(end.yaw)) > 0.3 and np.cos(end.yaw) > 0  # now looks towards +x
 
 
+def test_the_planner_gains_from_one_channel_and_is_blocked_by_the_other():
+    """A predicted wall 6 m ahead of the rover: serving only collision checking, it blocks
+    and offers no gain; serving only the gain, it attracts and blocks nothing."""
+    from rovergate.types import Channel
+    cfg = MissionConfig()
+    cfg.scene.bounds_m = BOUNDS
+    cfg.scene.d_scene_m = 30.0
+    ground, target = flat_ground(), grid_wall(6.0, size=1.5)
+    pts = np.vstack([ground, target])
+    src = np.r_[np.zeros(len(ground)), np.full(len(target), Source.PREDICTED)].astype(np.uint8)
+    views = np.r_[np.full(len(ground), 5), np.zeros(len(target))]  # only the wall is novel
+    here = Pose.from_xyz_yaw(0.0, 0.0, 0.0, 0.0)  # facing it
+    at_wall = Pose.from_xyz_yaw(6.0, 0.0, 0.0, 0.0)
+    seen = {}
+    for channel in (Channel.COLLISION, Channel.GAIN):
+        channels = np.r_[np.full(len(ground), Channel.BOTH), np.full(len(target), channel)]
+        occ = PlannerMap(0, make_cloud(pts, PLANNER_DTYPE, source=src, views=views,
+                                       channels=channels.astype(np.uint8)))
+        model, _, field = GreedyPlanner(cfg)._setup(0, occ, here)
+        seen[channel] = (model.is_free(model.state_of(at_wall)),
+                         field.gain(field.visible(model.camera(model.current))))
+    assert seen[Channel.COLLISION] == (False, 0)
+    free, gain = seen[Channel.GAIN]
+    assert free and gain > 0
+
+
 def test_map_points_inside_the_rover_body_are_not_obstacles():
     """The body occupies the space where it stands (a self filter)."""
     from planner.platforms import outside_body
