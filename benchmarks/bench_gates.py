@@ -1,0 +1,119 @@
+"""Benchmark: each gate's compute time and memory on the same recorded inputs.
+
+Runs one mission in process (under ``learned``: the prediction reaches the gate, and nothing
+withheld changes the path), records every step's gate inputs (surface, prediction, pose with
+its covariance, intrinsics, depth), then replays exactly those inputs through a fresh gate of
+each condition, several rounds alternating between the conditions: the median and largest
+time of a gate step, that median as a share of the mission's median step, what the gate
+holds in memory after the last step (tracemalloc: the frames it keeps), and how many
+predicted points it withheld over the mission.
+
+Usage: .venv/bin/python benchmarks/bench_gates.py [--steps 60] [--rounds 3]
+           [--platform rover] [--degraded]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import statistics
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+from gate.gate import Gate
+from mission.loop import run_mission
+from mission.transport import InProcessTransport
+from rover_sim.catalog import resolve_scene
+from rovergate.config import MissionConfig, SensingConfig
+from rovergate.runtime import tune_allocator
+from rovergate.types import MapperOutput
+
+GATES = ("gated", "gated-ray", "gated-pose", "gated-split")
+
+
+def record(cfg: MissionConfig) -> tuple[list[tuple], float]:
+    """Every step's gate inputs, and the mission's median step time."""
+    transport = InProcessTransport(cfg)
+    inputs: list[tuple] = []
+    start = transport.start
+
+    def start_and_tap() -> None:
+        start()
+        node = transport.logic["gate"]
+        handle = node.handle
+
+        def tapped(step, given):
+            pose = given["pose"]
+            inputs.append((MapperOutput(step, given["surface"], given["predicted"]),
+                           pose.pose, given["info"], given["depth"], pose.covariance))
+            return handle(step, given)
+        node.handle = tapped
+    transport.start = start_and_tap
+    rec = run_mission(cfg, transport)
+    return inputs, statistics.median(rec.step_wall_s)
+
+
+def replay(cfg: MissionConfig, condition: str, inputs: list[tuple], trace: bool = False
+           ) -> tuple[list[float], float, int]:
+    """(seconds per step, MB held after the last step (with ``trace`` only: tracing slows
+    every allocation, so timed rounds run without it), predicted points withheld)."""
+    if trace:
+        tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0] if trace else 0
+    gate = Gate(condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, cfg.scene.bounds_m,
+                cfg.gate.view_tolerance_m)
+    times, withheld = [], 0
+    for mapped, pose, info, depth, cov in inputs:
+        t0 = time.perf_counter()
+        out = gate.step(mapped, pose, info, depth, cov)
+        times.append(time.perf_counter() - t0)
+        withheld += out.suppressed
+    held = 0.0
+    if trace:
+        held = (tracemalloc.get_traced_memory()[0] - before) / 2**20
+        tracemalloc.stop()
+    return times, held, withheld
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--platform", default="rover")
+    ap.add_argument("--degraded", action="store_true",
+                    help="blob dropout 0.1, noise 1%%, grazing 80 deg, drift 0.02 m and "
+                         "0.3 deg per step")
+    args = ap.parse_args()
+    tune_allocator()
+    logging.basicConfig(level=logging.WARNING)
+    sensing = (SensingConfig(noise_frac=0.01, dropout_blob_frac=0.1, grazing_max_deg=80.0,
+                             drift_xy_m=0.02, drift_yaw_deg=0.3)
+               if args.degraded else SensingConfig())
+    cfg = MissionConfig(steps=args.steps, condition="learned", platform=args.platform,
+                        sensing=sensing, progress=False,
+                        out=Path(tempfile.mkdtemp(prefix="rovergate-bench-gates-")))
+    resolve_scene(cfg.scene)
+    inputs, step_s = record(cfg)
+    times: dict[str, list[float]] = {g: [] for g in GATES}
+    for _ in range(args.rounds):
+        for g in GATES:
+            times[g] += replay(dataclasses.replace(cfg, condition=g), g, inputs)[0]
+    memory = {g: replay(dataclasses.replace(cfg, condition=g), g, inputs, trace=True)[1:]
+              for g in GATES}
+    print(f"{cfg.scene.name}/{cfg.start}, {args.platform}, {args.steps} steps "
+          f"({'degraded, drift' if args.degraded else 'nominal'}), {args.rounds} rounds; "
+          f"mission median step {step_s:.3f} s")
+    print(f"{'gate':12} {'median s':>9} {'max s':>8} {'% of step':>9} {'held MB':>8} "
+          f"{'withheld':>9}")
+    for g in GATES:
+        med = statistics.median(times[g])
+        held, withheld = memory[g]
+        print(f"{g:12} {med:9.4f} {max(times[g]):8.4f} {100 * med / step_s:9.1f} "
+              f"{held:8.1f} {withheld:9d}")
+
+
+if __name__ == "__main__":
+    main()
