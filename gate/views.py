@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rovergate.geometry import pixels_of
 from rovergate.types import CameraIntrinsics
 
 _CHUNK = 8  # frames projected at once
@@ -38,15 +39,8 @@ def pixels(points: np.ndarray, R: np.ndarray, t: np.ndarray, k: CameraIntrinsics
     """Where a frame (map-to-optical rotation ``R``, translation ``t``) sees ``points``:
     ``(idx, v, u, z)`` of those in front of it within range that land on a pixel (the
     nearest), with their row, column and depth along the optical axis."""
-    pc = np.asarray(points, dtype=np.float64) @ R.T + t
-    z = pc[:, 2]
-    ok = (z >= min_range_m) & (z <= max_range_m)
-    zs = np.where(ok, z, 1.0)
-    u = np.floor(k.fx * pc[:, 0] / zs + k.cx + 0.5).astype(np.int64)
-    v = np.floor(k.fy * pc[:, 1] / zs + k.cy + 0.5).astype(np.int64)
-    ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
-    idx = np.flatnonzero(ok)
-    return idx, v[idx], u[idx], z[idx]
+    return pixels_of(np.asarray(points, dtype=np.float64) @ R.T + t, k, min_range_m,
+                     max_range_m)
 
 
 class _Frame:

@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from rovergate.geometry import pixels_of
 from rovergate.types import CameraIntrinsics
 
 #: Edge of the blocks that cull primitives outside a view (metres): big enough that a view's
@@ -50,20 +51,13 @@ def _project(points_cam: np.ndarray, k: CameraIntrinsics, min_range_m: float,
     """(N,) bool: which of (N, 3) camera-frame points their camera sees (see
     :func:`visible_mask`). ``views``: (N,) index of each point's view among ``n_views``, each
     with its own z-buffer (None: one view)."""
-    z = points_cam[:, 2]
-    ok = (z >= min_range_m) & (z <= max_range_m)
-    zs = np.where(ok, z, 1.0)
-    u = np.floor(k.fx * points_cam[:, 0] / zs + k.cx + 0.5).astype(np.int64)
-    v = np.floor(k.fy * points_cam[:, 1] / zs + k.cy + 0.5).astype(np.int64)
-    ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
-    idx = np.flatnonzero(ok)
+    idx, v, u, zi = pixels_of(points_cam, k, min_range_m, max_range_m)
     visible = np.zeros(len(points_cam), dtype=bool)
     if len(idx) == 0:
         return visible
-    pix = v[idx] * k.width + u[idx]
+    pix = v * k.width + u
     if views is not None:
         pix += views[idx] * (k.width * k.height)
-    zi = z[idx]
     zbuf = np.full(n_views * k.width * k.height, np.inf)
     np.minimum.at(zbuf, pix, zi)
     # Points are samples, not surfaces: close the one-pixel gaps between the samples of a

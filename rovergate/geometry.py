@@ -7,10 +7,15 @@ Two platforms: ``rover`` (SE(2) on the terrain; the camera on a pan-tilt mast) a
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from rovergate.config import SensorConfig
 from rovergate.errors import UnknownNameError
+
+if TYPE_CHECKING:
+    from rovergate.types import CameraIntrinsics
 
 _OFFSET = 1 << 20  # voxel indices are shifted into [0, 2^21) so they pack into one int64
 
@@ -124,3 +129,19 @@ def voxel_first_points(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """The first point of each occupied voxel, in order of first appearance."""
     _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)
     return points[np.sort(first)]
+
+
+def pixels_of(points_cam: np.ndarray, k: CameraIntrinsics, min_range_m: float,
+              max_range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where a camera sees (N, 3) points given in its optical frame: ``(idx, v, u, z)`` of
+    those in front of it within range that land on a pixel (the nearest), with their row,
+    column and depth along the optical axis. The one projection of the gain's z-buffer, the
+    views and the gates."""
+    z = points_cam[:, 2]
+    ok = (z >= min_range_m) & (z <= max_range_m)
+    zs = np.where(ok, z, 1.0)
+    u = np.floor(k.fx * points_cam[:, 0] / zs + k.cx + 0.5).astype(np.int64)
+    v = np.floor(k.fy * points_cam[:, 1] / zs + k.cy + 0.5).astype(np.int64)
+    ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+    idx = np.flatnonzero(ok)
+    return idx, v[idx], u[idx], z[idx]
