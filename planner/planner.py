@@ -198,7 +198,9 @@ class BeamPlanner(Planner):
                     if model.segment_free(last, c):
                         free.append((node, c))
                     elif node is root:
-                        blocked.append(c)  # a first motion found infeasible
+                        blocked.append(c)  # no straight way there
+            if len(nodes) == 1 and nodes[0] is root:
+                free += [(root, c) for c in routed(blocked)]
             views = field.visible_many([model.camera(c) for _, c in free])
             out = []
             for (node, c), vis in zip(free, views, strict=True):
@@ -210,6 +212,22 @@ class BeamPlanner(Planner):
                                        node.travel_m + float(np.linalg.norm(
                                            np.subtract(c[:dims], last[:dims]))),
                                        node.first))
+            return out
+
+        def routed(candidates: list) -> list:
+            """With ``route_blocked``: first motions with no straight way there that OMPL
+            reaches within the motion budget (at most ``max_attempts`` of them tried, in the
+            order sampled). On the rover most candidates lie behind something, and straight
+            segments alone leave the beam only the ground it already knows."""
+            if not pc.route_blocked:
+                return []
+            out = []
+            for i, c in enumerate([c for c in candidates if model.is_free(c)]
+                                  [: pc.max_attempts]):
+                path = model.plan(model.current, c, seed=plan_seed(cfg, step, 10_000 + i))
+                if path is not None and model.length(model.prefix + path) <= pc.max_step_m:
+                    out.append(c)
+            blocked[:] = [b for b in blocked if not any(b is c for c in out)]
             return out
 
         root = _Trajectory([model.current], np.zeros(len(field), dtype=bool), 0, 0.0, -1)

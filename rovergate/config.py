@@ -242,6 +242,11 @@ class PlannerConfig:
     ``views``, counted by the gate: gate/views.py)."""
     max_attempts: int = 8
     """Candidates (best gain first) tried with OMPL before giving up on a step."""
+    route_blocked: bool = False
+    """Beam: also keep a first motion with no straight way there when OMPL reaches it within
+    the budget (at most max_attempts such motions a step). Off by default: on the rover it
+    helps some scenes and hurts others (README, Roadmap), and on the flyer it would change
+    the published study's runs."""
     ompl_max_checks: int = 3000
     """State-validity checks one OMPL query may spend (a count, not a time, for determinism)."""
     known_ground_only: bool = True
