@@ -290,9 +290,14 @@ class SplitGate(RayGate):
     def withheld(self, points_map: np.ndarray, surface_map: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
         """(N,) bool masks: withheld from the gain channel, and from the collision channel."""
-        gain = self.unsupported(points_map, surface_map)
+        gain = np.zeros(len(points_map), dtype=bool)
         collision = np.zeros(len(points_map), dtype=bool)
+        if len(points_map) == 0:
+            return gain, collision
+        # Equation 4's shortcut for both channels: supported points are in neither.
         candidates = np.flatnonzero(
             self.support_distance(points_map, surface_map) > self.support_radius_m)
-        collision[candidates] = self.seen_through_from_two_places(points_map[candidates])
+        unsupported = points_map[candidates]
+        gain[candidates] = self.exposure_counts(unsupported, stop_at=self.k) >= self.k
+        collision[candidates] = self.seen_through_from_two_places(unsupported)
         return gain, collision

@@ -92,16 +92,6 @@ class PoseWithCovariance:
     pose: Pose
     covariance: np.ndarray
 
-    @property
-    def position_sd_m(self) -> float:
-        """The largest standard deviation of the position, in any direction."""
-        return float(np.sqrt(max(np.linalg.eigvalsh(self.covariance[:3, :3]).max(), 0.0)))
-
-    @property
-    def rotation_sd_rad(self) -> float:
-        """The largest standard deviation of the rotation, about any axis."""
-        return float(np.sqrt(max(np.linalg.eigvalsh(self.covariance[3:, 3:]).max(), 0.0)))
-
 
 @dataclass
 class SensorFrame:
