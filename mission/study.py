@@ -19,6 +19,12 @@ Layout of ``--out``::
     coverage_<condition>.png  every run's coverage curve, with the mean
     coverage_curves.csv every run's per-step coverage, one row per run
 
+A study of cells (``--platform flyer rover``, ``--profiles ...``, or ``--preset validation``)
+runs every (platform, sensing profile) as a cell: run ids start with ``<platform>-<profile>-``,
+each cell's tables (the layout above, without study.json) go to ``<platform>-<profile>/``, and
+the study's own outputs are :mod:`mission.validation`'s: runs.csv over every cell,
+validation.md, validation_*.png and summary.json.
+
 Resuming: a run directory appears only complete (it is written under a temporary name and
 renamed), so a re-run with the same ``--out`` skips every finished run, and a killed study
 loses at most the runs that were in flight.
@@ -69,8 +75,16 @@ class StudyConfig:
     """Repetitions of `learned` and `gated` on every start, for Table 2 (at least --reps)."""
     steps: int = 100
     """Planning steps per run (T; each run records T + 1 coverage values)."""
-    platform: str = "flyer"
-    """The paper's setting is the free-flying camera; `rover` is the extension."""
+    platform: tuple[str, ...] = ("flyer",)
+    """Platforms: the paper's setting is the free-flying camera; `rover` is the extension.
+    With more than one, or with --profiles, every (platform, profile) is a cell of its own
+    (see the module docstring)."""
+    profiles: tuple[str, ...] = ("nominal",)
+    """Sensing profiles (SENSING_PROFILES): `nominal` runs the --mission.sensing settings as
+    given; the others set the fields they name over them."""
+    preset: str = ""
+    """A named design (PRESETS): `validation` is the paper's required validation (issue 16).
+    It fills in every study setting left at its default; flags given override it."""
     workers: int = 0
     """Worker processes (0: one per CPU core). Each runs one mission at a time."""
     torch_threads: int = 1
@@ -108,6 +122,30 @@ OWNED_MISSION_FLAGS: dict[str, str] = {
 }
 """The --mission flags (after ``--mission.``) of what :func:`mission_config` sets for every
 run, and what to do instead; ``{value}`` is the value given (VALUE if none)."""
+
+#: The conditions of the validation study: the baseline, the paper's gate and its variants.
+VALIDATION_CONDITIONS = ("learned", "gated", "gated-ray", "gated-pose", "gated-split")
+
+#: Sensing profiles: SensingConfig fields each sets over the --mission.sensing settings.
+#: Degraded: 10% of every image lost in blobs (structured dropout), 1% range noise, returns
+#: lost beyond 80 degrees of incidence. Drift: a random walk on the published pose of 0.02 m
+#: (x, y) and 0.01 m (z) and 0.3 degrees of heading per step (after 100 steps: 0.2 m, 0.1 m,
+#: 3 degrees standard deviation).
+DEGRADED = {"dropout_blob_frac": 0.1, "noise_frac": 0.01, "grazing_max_deg": 80.0}
+DRIFT = {"drift_xy_m": 0.02, "drift_z_m": 0.01, "drift_yaw_deg": 0.3}
+SENSING_PROFILES: dict[str, dict] = {
+    "nominal": {}, "degraded": DEGRADED, "drift": DRIFT, "drift+degraded": {**DRIFT, **DEGRADED},
+}
+
+#: Named designs: StudyConfig fields each fills in where the command line left the default.
+PRESETS: dict[str, dict] = {
+    # The paper's validation list (issue 16): 6 scenes x start a x 5 conditions x 4 profiles x
+    # 2 platforms x 2 repetitions = 480 runs of 100 steps, about an hour on 2 cores. It leaves
+    # out starts b to e (the unit of every interval is the scene) and a third repetition.
+    "validation": {"scenes": SUITE, "starts": ("a",), "conditions": VALIDATION_CONDITIONS,
+                   "platform": ("flyer", "rover"), "profiles": tuple(SENSING_PROFILES),
+                   "reps": 2, "filter_reps": 2, "steps": 100},
+}
 
 #: Sections and flags that only the process set reads: every study run is in one process, so
 #: they would have no effect.
@@ -149,15 +187,54 @@ class RunSpec:
     start: str
     condition: str
     rep: int
+    platform: str = ""
+    """Set in a study of cells (several platforms or profiles); empty: the study's one."""
+    profile: str = ""
 
     @property
     def id(self) -> str:
         scene = Path(self.scene).stem if "/" in self.scene or "." in self.scene else self.scene
-        return f"{scene}-{self.start}-{self.condition}-r{self.rep}"
+        cell = f"{self.platform}-{self.profile}-" if self.platform else ""
+        return f"{cell}{scene}-{self.start}-{self.condition}-r{self.rep}"
+
+    @property
+    def cell(self) -> str:
+        """The (platform, profile) cell's name, its directory in the study."""
+        return f"{self.platform}-{self.profile}"
+
+
+def cells(cfg: StudyConfig) -> list[tuple[str, str]]:
+    """The study's (platform, profile) cells; empty for a study of one platform, nominal."""
+    if len(cfg.platform) == 1 and tuple(cfg.profiles) == ("nominal",):
+        return []
+    return [(p, s) for p in cfg.platform for s in cfg.profiles]
+
+
+def apply_preset(cfg: StudyConfig) -> StudyConfig:
+    """Fill in the preset's settings where ``cfg`` has the default."""
+    if not cfg.preset:
+        return cfg
+    if cfg.preset not in PRESETS:
+        raise ConfigError(f"--preset {cfg.preset!r} is not a preset; the presets are "
+                          + ", ".join(PRESETS))
+    default = StudyConfig()
+    return replace(cfg, **{k: v for k, v in PRESETS[cfg.preset].items()
+                           if getattr(cfg, k) == getattr(default, k)})
 
 
 def check_study(cfg: StudyConfig) -> StudyConfig:
     """Validate the settings; one line for each kind of mistake. Returns them resolved."""
+    cfg = apply_preset(cfg)
+    if isinstance(cfg.platform, str):
+        cfg = replace(cfg, platform=(cfg.platform,))
+    cfg = replace(cfg, platform=tuple(dict.fromkeys(cfg.platform)),
+                  profiles=tuple(dict.fromkeys(cfg.profiles)))
+    if not cfg.platform or not cfg.profiles:
+        raise ConfigError("--platform and --profiles each need at least one value")
+    for p in cfg.profiles:
+        if p not in SENSING_PROFILES:
+            raise ConfigError(f"--profiles: {p!r} is not a sensing profile; the profiles are "
+                              + ", ".join(SENSING_PROFILES))
     if not cfg.scenes or not cfg.starts or not cfg.conditions:
         raise ConfigError("--scenes, --starts and --conditions each need at least one "
                           "value")
@@ -182,8 +259,11 @@ def check_study(cfg: StudyConfig) -> StudyConfig:
     from mission.run import check_runnable
     kinds = {get_condition(c).needs_prediction: c for c in reversed(conditions)}
     for c in kinds.values():
-        check_runnable(mission_config(cfg, RunSpec(cfg.scenes[0], cfg.starts[0], c, 0),
-                                      Path(cfg.out)))
+        for platform in cfg.platform:
+            for profile in cfg.profiles:
+                check_runnable(mission_config(
+                    cfg, RunSpec(cfg.scenes[0], cfg.starts[0], c, 0, platform, profile),
+                    Path(cfg.out)))
     workers = cfg.workers or os.cpu_count() or 1
     return replace(cfg, conditions=conditions, workers=workers)
 
@@ -191,13 +271,15 @@ def check_study(cfg: StudyConfig) -> StudyConfig:
 def run_specs(cfg: StudyConfig) -> list[RunSpec]:
     """Every run of the study, in a fixed order."""
     specs = []
-    for scene in cfg.scenes:
-        for start in cfg.starts:
-            for condition in cfg.conditions:
-                reps = cfg.reps
-                if condition == "learned" or get_condition(condition).withholds:
-                    reps = max(reps, cfg.filter_reps)
-                specs.extend(RunSpec(scene, start, condition, r) for r in range(reps))
+    for platform, profile in cells(cfg) or [("", "")]:
+        for scene in cfg.scenes:
+            for start in cfg.starts:
+                for condition in cfg.conditions:
+                    reps = cfg.reps
+                    if condition == "learned" or get_condition(condition).withholds:
+                        reps = max(reps, cfg.filter_reps)
+                    specs.extend(RunSpec(scene, start, condition, r, platform, profile)
+                                 for r in range(reps))
     return specs
 
 
@@ -205,7 +287,11 @@ def mission_config(cfg: StudyConfig, spec: RunSpec, run_dir: Path) -> MissionCon
     m = from_dict(MissionConfig, to_dict(cfg.mission))  # a deep copy
     m.scene = replace(m.scene, name=spec.scene, d_scene_m=0.0, bounds_m=(0,) * 6)
     m.start, m.condition, m.seed, m.steps = spec.start, spec.condition, spec.rep, cfg.steps
-    m.platform, m.out, m.in_process, m.progress = cfg.platform, run_dir, True, False
+    platforms = (cfg.platform,) if isinstance(cfg.platform, str) else cfg.platform
+    m.platform, m.out, m.in_process, m.progress = (spec.platform or platforms[0], run_dir,
+                                                   True, False)
+    if spec.profile:
+        m.sensing = replace(m.sensing, **SENSING_PROFILES[spec.profile])
     return m
 
 
@@ -251,8 +337,12 @@ def _run_one(job: tuple[dict, str, str]) -> tuple[str, float, str | None]:
 def _settings(cfg: StudyConfig) -> dict:
     """What must match for a study directory to be resumed."""
     d = to_dict(cfg)
-    for k in ("workers", "torch_threads", "out", "bootstrap", "progress"):
+    for k in ("workers", "torch_threads", "out", "bootstrap", "progress", "preset"):
         d.pop(k)
+    # A study of one platform, nominal, saves its settings as studies did before cells.
+    if not cells(cfg):
+        d["platform"] = cfg.platform[0]
+        d.pop("profiles")
     return d
 
 
@@ -331,8 +421,12 @@ def main(cfg: StudyConfig) -> int:
         bar.close()
     save_progress()
 
-    from mission.tables import write_tables
-    summary = write_tables(cfg, specs, out)
+    if cells(cfg):
+        from mission.validation import write_validation
+        summary = write_validation(cfg, specs, out)
+    else:
+        from mission.tables import write_tables
+        summary = write_tables(cfg, specs, out)
     wall = sum(s["wall_s"] for s in sessions)
     log.info("study: %d runs in %.1f min of wall time over %d session(s); tables in %s",
              summary["runs"], wall / 60, len(sessions), out)

@@ -120,7 +120,8 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
         stage = m.get("median_stage_s", {})
         rows.append({
             "scene": s.scene, "start": s.start, "condition": s.condition, "rep": s.rep,
-            "seed": m["seed"], "platform": m["platform"], "steps": m["steps"],
+            "seed": m["seed"], "platform": m["platform"], "profile": s.profile or "nominal",
+            "steps": m["steps"],
             "final_coverage": m["final_coverage"], "auc": m["auc"], "s70": step,
             "s70_reached": reached, "collisions": m["collisions"],
             "path_length_m": m["path_length_m"],
@@ -131,6 +132,7 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             "suppression_recall": m.get("suppression_recall"),
             "wrongly_withheld_per_step": (_mean(m.get("wrongly_withheld_per_step") or [None])
                                           if get_condition(s.condition).withholds else None),
+            "predicted_fp_per_step": _mean(m.get("predicted_fp_per_step") or [None]),
             "wall_s": m["wall_s"], "median_step_s": m["median_step_s"],
             **{f"{k}_s": stage.get(k) for k in STAGES},
             # Failure modes; runs written before these keys existed lack them (None, "—").
@@ -666,10 +668,15 @@ def plot_curves(curves: dict[str, list], out: Path) -> list[str]:
     return names
 
 
-def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
+def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
+                 runs_dir: Path | None = None, platform: str | None = None,
+                 sessions: list | None = None) -> dict:
     """runs.csv, table1.md (with the failure modes and the robustness check below it),
-    table2.md, the plots, coverage_curves.csv and summary.json of the study in ``out``."""
-    rows, curves = load_rows(specs, out / "runs")
+    table2.md, the plots, coverage_curves.csv and summary.json of the study in ``out``
+    (its runs in ``runs_dir``, default ``out/runs``; its sessions from ``out/study.json``
+    unless given). A cell of a study passes its own directory, platform and the study's
+    sessions."""
+    rows, curves = load_rows(specs, runs_dir or out / "runs")
     if rows:
         with open(out / "runs.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if k != "coverage"],
@@ -680,8 +687,11 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
     tf, ff = failure_modes(rows, cfg.conditions)
     tr, fr = robustness(rows, cfg.conditions, cfg.bootstrap)
     t2, f2 = table2(rows, cfg.bootstrap)
-    header = (f"Platform {cfg.platform}, {cfg.steps} steps, scenes {', '.join(cfg.scenes)}, "
-              f"starts {', '.join(cfg.starts)}.\n\n")
+    if platform is None:
+        platform = cfg.platform if isinstance(cfg.platform, str) else cfg.platform[0]
+    profile = specs[0].profile if specs and specs[0].profile else "nominal"
+    header = (f"Platform {platform}, sensing {profile}, {cfg.steps} steps, scenes "
+              f"{', '.join(cfg.scenes)}, starts {', '.join(cfg.starts)}.\n\n")
     (out / "table1.md").write_text("# Table 1: controlled occupancy interventions\n\n"
                                    + header + t1 + "\n## Failure modes per condition\n\n"
                                    + tf + "\n## Without the runs that were stuck or collided\n\n"
@@ -697,13 +707,14 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
             for r in rows:
                 w.writerow([r["scene"], r["start"], r["condition"], r["rep"],
                             *[f"{c:.5f}" for c in r["coverage"]]])
-    settings = json.loads((out / "study.json").read_text())
+    if sessions is None:
+        sessions = json.loads((out / "study.json").read_text())["sessions"]
     stages = {k: float(np.median([r[f"{k}_s"] for r in rows if r[f"{k}_s"] is not None]))
               for k in STAGES if any(r[f"{k}_s"] is not None for r in rows)}
     summary = {
         "runs": len(rows), "expected_runs": len(specs),
-        "wall_s": sum(s["wall_s"] for s in settings["sessions"]),
-        "sessions": settings["sessions"],
+        "wall_s": sum(s["wall_s"] for s in sessions),
+        "sessions": sessions,
         "run_wall_s_median": float(np.median([r["wall_s"] for r in rows])) if rows else None,
         "run_wall_s_sum": float(sum(r["wall_s"] for r in rows)),
         "median_step_s": float(np.median([r["median_step_s"] for r in rows])) if rows else None,

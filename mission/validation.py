@@ -1,0 +1,338 @@
+"""The outputs of a study of cells (``rovergate study --preset validation``): every
+(platform, sensing profile) cell's own tables, and across them the paper's required validation
+(issue 16): coverage against `learned` and against the frustum gate, suppression precision and
+recall, true surface wrongly withheld, collisions by class, clearance and gate latency, per
+variant and profile.
+
+Statistics, as in :mod:`mission.tables`: every delta pairs run r of a condition with run r of
+its reference (same seed, scene, start, platform and profile); the unit of every interval is
+the start within a cell (scene, start), and pooled over profiles the (profile, scene, start):
+per unit the mean over repetitions, then the mean over units, with a bootstrap 95% interval
+resampling units. The placebo (learned against itself, odd against even repetitions) is the
+noise floor of each cell and of each pooled row.
+
+Suppression precision and recall are pooled as ratios of sums over runs (every withheld point
+weighs the same, whichever run it came from): precision = true false positives withheld /
+points withheld; recall = true false positives withheld / oracle false positives predicted.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from mission.tables import (  # noqa: E402
+    BASELINE,
+    FILTER,
+    LABELS,
+    _cell,
+    _fmt,
+    _mean,
+    load_rows,
+    write_tables,
+)
+from rovergate.conditions import get_condition  # noqa: E402
+
+if TYPE_CHECKING:
+    from mission.study import RunSpec, StudyConfig
+
+#: Profiles whose pose drifts: where the pose-aware gate is compared with the frustum gate.
+DRIFTING = ("drift", "drift+degraded")
+#: Target of the issue: the pose-aware gate withholds at most this share of what the frustum
+#: gate wrongly withholds under drift.
+POSE_TARGET = 0.5
+#: Target of the issue: pooled suppression precision of the ray-consistent gate.
+PRECISION_TARGET = 0.9
+
+
+def _unit_deltas(rows: list[dict], condition: str, reference: str, metric: str,
+                 key=lambda r: (r["scene"], r["start"])) -> dict:
+    """Per unit: the mean over repetitions r of (condition run r − reference run r)."""
+    def by_unit(c):
+        out: dict = {}
+        for r in rows:
+            if r["condition"] == c and r.get(metric) is not None:
+                out.setdefault(key(r), {})[r["rep"]] = r[metric]
+        return out
+    cond, ref = by_unit(condition), by_unit(reference)
+    out = {}
+    for k, runs in cond.items():
+        d = [v - ref[k][r] for r, v in runs.items() if r in ref.get(k, {})]
+        if d:
+            out[k] = float(np.mean(d))
+    return out
+
+
+def _placebo(rows: list[dict], metric: str, key=lambda r: (r["scene"], r["start"])) -> dict:
+    """Per unit: learned runs in repetition order, mean(odd positions) − mean(even ones)."""
+    by: dict = {}
+    for r in rows:
+        if r["condition"] == BASELINE and r.get(metric) is not None:
+            by.setdefault(key(r), {})[r["rep"]] = r[metric]
+    out = {}
+    for k, runs in by.items():
+        v = [runs[r] for r in sorted(runs)]
+        if len(v) >= 2:
+            out[k] = float(np.mean(v[1::2]) - np.mean(v[0::2]))
+    return out
+
+
+def suppression(rows: list[dict]) -> dict:
+    """Pooled suppression figures of some runs of one withholding condition (ratios of sums),
+    and the mean true surface wrongly withheld per step."""
+    withheld = fp = predicted_fp = 0.0
+    for r in rows:
+        held, share = r.get("suppressed_per_step"), r.get("suppressed_fp_share")
+        steps = r["steps"]
+        if held is not None:
+            withheld += held * steps
+            if share is not None and math.isfinite(share):
+                fp += held * share * steps
+        if r.get("predicted_fp_per_step") is not None:
+            predicted_fp += r["predicted_fp_per_step"] * steps
+    return {"withheld": withheld, "withheld_fp": fp, "predicted_fp": predicted_fp,
+            "precision": fp / withheld if withheld else None,
+            "recall": fp / predicted_fp if predicted_fp else None,
+            "wrongly_withheld_per_step": _mean(r.get("wrongly_withheld_per_step")
+                                               for r in rows)}
+
+
+def _failures(rows: list[dict]) -> dict:
+    clearance = [r["min_clearance_m"] for r in rows if r.get("min_clearance_m") is not None
+                 and math.isfinite(r["min_clearance_m"])]
+    gate = [r["gate_s"] for r in rows if r.get("gate_s") is not None]
+    step = [r["median_step_s"] for r in rows if r.get("median_step_s") is not None]
+
+    def total(k):
+        v = [r.get(k) for r in rows]
+        return int(sum(v)) if v and all(x is not None for x in v) else None
+    return {"runs": len(rows), "collisions": total("collisions"),
+            "collisions_planner_fault": total("collisions_planner_fault"),
+            "collisions_unseen": total("collisions_unseen"),
+            "stuck_steps": total("stuck_steps"),
+            "stuck_runs": sum(1 for r in rows if (r.get("stuck_steps") or 0) > 0),
+            "min_clearance_m_median": float(np.median(clearance)) if clearance else None,
+            "fp_gain_share_mean": _mean(r.get("fp_gain_share") for r in rows
+                                        if r.get("fp_gain_share") is not None
+                                        and math.isfinite(r["fp_gain_share"])),
+            "gate_s_median": float(np.median(gate)) if gate else None,
+            "gate_share_of_step": (float(np.median(gate)) / float(np.median(step))
+                                   if gate and step else None)}
+
+
+def _s(v, digits=3, signed=False) -> str:
+    return _fmt(v, signed, digits) if v is not None else "—"
+
+
+def cell_table(rows: list[dict], conditions: tuple[str, ...], resamples: int,
+               key=lambda r: (r["scene"], r["start"])) -> tuple[list[str], dict]:
+    """The rows of one platform and profile (or of all profiles of a platform, with ``key``
+    including the profile): one line per condition and the placebo."""
+    lines, figures = [], {}
+    for c in conditions:
+        runs = [r for r in rows if r["condition"] == c]
+        if not runs:
+            continue
+        fig: dict = {}
+        if c == BASELINE:
+            per_unit: dict = {}
+            for r in runs:
+                per_unit.setdefault(key(r), []).append(r["final_coverage"])
+            text, fig["final_coverage"] = _cell([float(np.mean(v)) for v in per_unit.values()],
+                                                False, 3, resamples)
+            vs_gate = "—"
+        else:
+            d = _unit_deltas(rows, c, BASELINE, "final_coverage", key)
+            text, fig["delta_c_t"] = _cell(list(d.values()), True, 3, resamples)
+            vs_gate = "—"
+            if c != FILTER and get_condition(c).withholds:
+                g = _unit_deltas(rows, c, FILTER, "final_coverage", key)
+                vs_gate, fig["delta_vs_gated"] = _cell(list(g.values()), True, 3, resamples)
+        sup = suppression(runs) if get_condition(c).withholds else {}
+        fail = _failures(runs)
+        fig.update(sup)
+        fig.update(fail)
+        figures[c] = fig
+        lines.append(
+            f"| {LABELS.get(c, c)} | {len(runs)} | {text} | {vs_gate} | "
+            f"{_s(sup.get('precision'), 2)} | {_s(sup.get('recall'), 2)} | "
+            f"{_s(sup.get('wrongly_withheld_per_step'), 1)} | "
+            f"{_s(fail['fp_gain_share_mean'], 3)} | "
+            f"{fail['collisions_planner_fault']} / {fail['collisions_unseen']} | "
+            f"{fail['stuck_steps']} ({fail['stuck_runs']}) | "
+            f"{_s(fail['min_clearance_m_median'], 2)} | "
+            f"{_s(fail['gate_s_median'], 4)} ({_s(fail['gate_share_of_step'], 3)}) |")
+    p = _placebo(rows, "final_coverage", key)
+    text, figures["placebo"] = _cell(list(p.values()), True, 3, resamples)
+    lines.append(f"| Placebo (learned vs learned) | — | {text} | — | | | | | | | | |")
+    return lines, figures
+
+
+HEAD = ("| Condition | runs | C_T (learned) / ΔC_T vs learned [95% CI] | ΔC_T vs frustum gate "
+        "[95% CI] | suppression precision | recall | true surface wrongly withheld / step | "
+        "FP gain share | collisions: planner fault / unseen | stuck steps (runs) | "
+        "min clearance, median (m) | gate s / step (share of step) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def plot_coverage(rows: list[dict], cfg, out: Path) -> str:
+    platforms, profiles = cfg.platform, cfg.profiles
+    fig, axes = plt.subplots(len(platforms), len(profiles), squeeze=False,
+                             figsize=(3.6 * len(profiles), 3.2 * len(platforms)), sharey=True)
+    colours = dict(zip(cfg.conditions, plt.cm.tab10.colors, strict=False))
+    for i, p in enumerate(platforms):
+        for j, s in enumerate(profiles):
+            ax = axes[i][j]
+            for c in cfg.conditions:
+                curves = [r["coverage"] for r in rows if (r["platform"], r["profile"],
+                                                         r["condition"]) == (p, s, c)]
+                if curves:
+                    ax.plot(np.mean(curves, axis=0), color=colours[c], lw=1.6,
+                            ls="--" if c == BASELINE else "-",
+                            label=f"{c} ({len(curves)})")
+            ax.set(title=f"{p}, {s}", ylim=(0, 1), xlabel="planning step")
+            ax.grid(alpha=0.3)
+            if j == 0:
+                ax.set_ylabel("surface coverage (mean of runs)")
+    axes[0][0].legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    name = "validation_coverage.png"
+    fig.savefig(out / name, dpi=100)
+    plt.close(fig)
+    return name
+
+
+def plot_suppression(figures: dict, cfg, out: Path) -> str:
+    variants = [c for c in cfg.conditions if get_condition(c).withholds]
+    fig, axes = plt.subplots(len(cfg.platform), 2, squeeze=False,
+                             figsize=(11, 3.4 * len(cfg.platform)))
+    width = 0.8 / max(len(variants), 1)
+    x = np.arange(len(cfg.profiles))
+    for i, p in enumerate(cfg.platform):
+        for j, (key, title) in enumerate((("precision", "suppression precision"),
+                                          ("recall", "suppression recall"))):
+            ax = axes[i][j]
+            for k, c in enumerate(variants):
+                v = [figures[p]["profiles"][s].get(c, {}).get(key) for s in cfg.profiles]
+                ax.bar(x + (k - (len(variants) - 1) / 2) * width,
+                       [np.nan if y is None else y for y in v], width, label=c)
+            if key == "precision":
+                ax.axhline(PRECISION_TARGET, color="grey", ls=":", lw=1)
+            ax.set(title=f"{p}: {title} (pooled over runs)", ylim=(0, 1), xticks=x,
+                   xticklabels=cfg.profiles)
+            ax.grid(alpha=0.3, axis="y")
+    axes[0][0].legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    name = "validation_suppression.png"
+    fig.savefig(out / name, dpi=100)
+    plt.close(fig)
+    return name
+
+
+def write_validation(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
+    """Every cell's tables in ``out/<platform>-<profile>/``; runs.csv, validation.md, the plots
+    and summary.json of the whole study in ``out``."""
+    sessions = json.loads((out / "study.json").read_text())["sessions"]
+    rows: list[dict] = []
+    cell_summaries = {}
+    for p in cfg.platform:
+        for s in cfg.profiles:
+            cell = [x for x in specs if (x.platform, x.profile) == (p, s)]
+            (out / f"{p}-{s}").mkdir(exist_ok=True)
+            cell_summaries[f"{p}-{s}"] = write_tables(
+                replace(cfg, platform=(p,)), cell, out / f"{p}-{s}", runs_dir=out / "runs",
+                platform=p, sessions=sessions)
+            rows += load_rows(cell, out / "runs")[0]
+    if rows:
+        with open(out / "runs.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if k != "coverage"],
+                               extrasaction="ignore")
+            w.writeheader()
+            w.writerows(rows)
+    with_profile = lambda r: (r["profile"], r["scene"], r["start"])  # noqa: E731
+    text = ["# The paper's required validation: gate variants under degraded sensing and drift",
+            "", f"{cfg.steps} steps; scenes {', '.join(cfg.scenes)}; starts "
+            f"{', '.join(cfg.starts)}; repetitions {cfg.reps} (seeds 0 to {cfg.reps - 1}); "
+            f"{len(rows)} of {len(specs)} runs finished. Sensing profiles: see "
+            "`mission.study.SENSING_PROFILES`.", ""]
+    figures: dict = {}
+    for p in cfg.platform:
+        prow = [r for r in rows if r["platform"] == p]
+        figures[p] = {"profiles": {}}
+        for s in cfg.profiles:
+            lines, figures[p]["profiles"][s] = cell_table(
+                [r for r in prow if r["profile"] == s], cfg.conditions, cfg.bootstrap)
+            text += [f"## {p}, {s}", "", *HEAD, *lines, ""]
+        lines, figures[p]["pooled"] = cell_table(prow, cfg.conditions, cfg.bootstrap,
+                                                 key=with_profile)
+        text += [f"## {p}, pooled over the {len(cfg.profiles)} profiles "
+                 "(unit: profile, scene, start)", "", *HEAD, *lines, ""]
+        drift = [r for r in prow if r["profile"] in DRIFTING]
+        w = {c: suppression([r for r in drift if r["condition"] == c])
+             ["wrongly_withheld_per_step"] for c in ("gated", "gated-pose")}
+        ratio = (w["gated-pose"] / w["gated"] if w["gated"] and w["gated-pose"] is not None
+                 else None)
+        figures[p]["drift_wrongly_withheld"] = {**w, "ratio": ratio}
+    everything = {c: suppression([r for r in rows if r["condition"] == c])
+                  for c in cfg.conditions if get_condition(c).withholds}
+    figures["pooled_suppression"] = everything
+    text += ["## Targets", ""]
+    ray = everything.get("gated-ray", {})
+    text.append(f"- Ray-consistent gate: pooled suppression precision "
+                f"{_s(ray.get('precision'), 3)} over every run (target ≥ {PRECISION_TARGET}); "
+                f"frustum gate {_s(everything.get(FILTER, {}).get('precision'), 3)}.")
+    for p in cfg.platform:
+        d = figures[p]["drift_wrongly_withheld"]
+        text.append(f"- {p}, under drift ({' and '.join(DRIFTING)}): true surface wrongly "
+                    f"withheld per step, frustum gate {_s(d['gated'], 1)}, pose-aware gate "
+                    f"{_s(d['gated-pose'], 1)}: ratio {_s(d['ratio'], 2)} (target ≤ "
+                    f"{POSE_TARGET}).")
+        for c, fig in figures[p]["pooled"].items():
+            if c in (BASELINE, "placebo") or "delta_c_t" not in fig:
+                continue
+            ci = fig["delta_c_t"]["ci95"]
+            vg = fig.get("delta_vs_gated", {}).get("ci95")
+            meets = (ci and ci[0] > 0 and (c == FILTER or (vg and vg[0] > 0))
+                     and fig["collisions_planner_fault"] == 0)
+            text.append(f"- {p}, {c}: pooled ΔC_T vs learned CI {_s(ci[0], 3, True)} to "
+                        f"{_s(ci[1], 3, True)}" + (f", vs frustum gate {_s(vg[0], 3, True)} "
+                                                   f"to {_s(vg[1], 3, True)}" if vg else "")
+                        + f", planner-fault collisions {fig['collisions_planner_fault']}: "
+                        + ("meets" if meets else "does not meet")
+                        + " the coverage target.")
+    text += ["", "Columns: C_T is absolute for `learned`; ΔC_T pairs run r with the learned "
+             "(or frustum-gate) run r of the same scene, start, platform and profile, averaged "
+             "over repetitions per unit, then over units, with a bootstrap 95% CI resampling "
+             f"units ({cfg.bootstrap} resamples). Suppression precision: of the points a gate "
+             "withheld, the share farther than 0.03 d_scene from the true surface; recall: "
+             "of the prediction's oracle false positives, the share withheld; both pooled as "
+             "ratios of sums over runs. True surface wrongly withheld: withheld points within "
+             "0.03 d_scene of the true surface, per step, mean over runs. FP gain share: the "
+             "share of the chosen viewpoint's rendered gain owed to oracle false positives. "
+             "Collisions: totals over runs, planner fault (the map held an obstacle within "
+             "the planner's margin of the contact) / unseen geometry. Stuck steps: steps with "
+             "under 0.5 m of net progress over the last 10, total (runs with any). Gate s / "
+             "step: median over runs of each run's median gate stage, and its share of the "
+             "median step. Every figure but coverage is evaluation only: no module sees truth."]
+    (out / "validation.md").write_text("\n".join(text) + "\n")
+    plots = [plot_coverage(rows, cfg, out), plot_suppression(figures, cfg, out)]
+    summary = {
+        "runs": len(rows), "expected_runs": len(specs),
+        "wall_s": sum(s["wall_s"] for s in sessions), "sessions": sessions,
+        "run_wall_s_median": float(np.median([r["wall_s"] for r in rows])) if rows else None,
+        "validation": figures, "plots": plots,
+        "cells": {k: {"table1": v["table1"], "failure_modes": v["failure_modes"]}
+                  for k, v in cell_summaries.items()},
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float) + "\n")
+    return summary
