@@ -6,7 +6,11 @@ its covariance, intrinsics, depth), then replays exactly those inputs through a 
 each condition, several rounds alternating between the conditions: the median and largest
 time of a gate step, that median as a share of the mission's median step, what the gate
 holds in memory after the last step (tracemalloc: the frames it keeps), and how many
-predicted points it withheld over the mission.
+predicted points it withheld over the mission. A gate step is the gate module's whole step:
+counting every point's views (the planner's novelty, which the module computes under every
+condition) and composing the map, then the filter. `learned` (no filter) is the reference
+row, and the filter's own time (its frame and its test, timed inside the step) is given
+apart.
 
 Usage: .venv/bin/python benchmarks/bench_gates.py [--steps 60] [--rounds 3]
            [--platform rover] [--degraded]
@@ -32,6 +36,8 @@ from rovergate.runtime import tune_allocator
 from rovergate.types import MapperOutput
 
 GATES = ("gated", "gated-ray", "gated-pose", "gated-split")
+#: The reference: the same module step with no filter.
+REFERENCE = "learned"
 
 
 def record(cfg: MissionConfig) -> tuple[list[tuple], float]:
@@ -56,17 +62,37 @@ def record(cfg: MissionConfig) -> tuple[list[tuple], float]:
     return inputs, statistics.median(rec.step_wall_s)
 
 
+def _timed(obj, name: str, spent: list[float]) -> None:
+    """Add the time of every call of ``obj.name`` to ``spent[-1]``."""
+    method = getattr(obj, name, None)
+    if method is None:
+        return
+
+    def timed(*a, **kw):
+        t0 = time.perf_counter()
+        try:
+            return method(*a, **kw)
+        finally:
+            spent[-1] += time.perf_counter() - t0
+    setattr(obj, name, timed)
+
+
 def replay(cfg: MissionConfig, condition: str, inputs: list[tuple], trace: bool = False
-           ) -> tuple[list[float], float, int]:
+           ) -> tuple[list[float], float, int, list[float]]:
     """(seconds per step, MB held after the last step (with ``trace`` only: tracing slows
-    every allocation, so timed rounds run without it), predicted points withheld)."""
+    every allocation, so timed rounds run without it), predicted points withheld, seconds per
+    step in the filter itself)."""
     if trace:
         tracemalloc.start()
     before = tracemalloc.get_traced_memory()[0] if trace else 0
     gate = Gate(condition, cfg.gate, cfg.sensor, cfg.scene.d_scene_m, cfg.scene.bounds_m,
                 cfg.gate.view_tolerance_m)
-    times, withheld = [], 0
+    times, withheld, own = [], 0, []
+    if gate.condition.withholds:
+        for name in ("add_frame", "unsupported", "withheld"):
+            _timed(gate.filter, name, own)
     for mapped, pose, info, depth, cov in inputs:
+        own.append(0.0)
         t0 = time.perf_counter()
         out = gate.step(mapped, pose, info, depth, cov)
         times.append(time.perf_counter() - t0)
@@ -75,7 +101,7 @@ def replay(cfg: MissionConfig, condition: str, inputs: list[tuple], trace: bool 
     if trace:
         held = (tracemalloc.get_traced_memory()[0] - before) / 2**20
         tracemalloc.stop()
-    return times, held, withheld
+    return times, held, withheld, own
 
 
 def main() -> None:
@@ -97,22 +123,28 @@ def main() -> None:
                         out=Path(tempfile.mkdtemp(prefix="rovergate-bench-gates-")))
     resolve_scene(cfg.scene)
     inputs, step_s = record(cfg)
-    times: dict[str, list[float]] = {g: [] for g in GATES}
+    rows = (REFERENCE, *GATES)
+    times: dict[str, list[float]] = {g: [] for g in rows}
+    own: dict[str, list[float]] = {g: [] for g in rows}
     for _ in range(args.rounds):
-        for g in GATES:
-            times[g] += replay(dataclasses.replace(cfg, condition=g), g, inputs)[0]
-    memory = {g: replay(dataclasses.replace(cfg, condition=g), g, inputs, trace=True)[1:]
-              for g in GATES}
+        for g in rows:
+            t, _, _, o = replay(dataclasses.replace(cfg, condition=g), g, inputs)
+            times[g] += t
+            own[g] += o
+    memory = {g: replay(dataclasses.replace(cfg, condition=g), g, inputs, trace=True)[1:3]
+              for g in rows}
     print(f"{cfg.scene.name}/{cfg.start}, {args.platform}, {args.steps} steps "
           f"({'degraded, drift' if args.degraded else 'nominal'}), {args.rounds} rounds; "
           f"mission median step {step_s:.3f} s")
-    print(f"{'gate':12} {'median s':>9} {'max s':>8} {'% of step':>9} {'held MB':>8} "
-          f"{'withheld':>9}")
-    for g in GATES:
-        med = statistics.median(times[g])
+    print(f"{'gate':12} {'median s':>9} {'max s':>8} {'% of step':>9} {'filter s':>9} "
+          f"{'filter %':>9} {'held MB':>8} {'withheld':>9}")
+    for g in rows:
+        med, filt = statistics.median(times[g]), statistics.median(own[g])
         held, withheld = memory[g]
         print(f"{g:12} {med:9.4f} {max(times[g]):8.4f} {100 * med / step_s:9.1f} "
-              f"{held:8.1f} {withheld:9d}")
+              f"{filt:9.4f} {100 * filt / step_s:9.1f} {held:8.1f} {withheld:9d}")
+    print("(median s: the gate module's whole step; filter s: the filter's own frame and test "
+          f"within it; {REFERENCE}: the module with no filter)")
 
 
 if __name__ == "__main__":

@@ -98,11 +98,13 @@ def _module(name: str) -> Callable[[list[str]], int]:
 
 
 def _typed(prog: str, load: Callable[[], tuple[type, Callable[[Any], int]]],
-           check: Callable[[list[str]], None] | None = None) -> Callable[[list[str]], int]:
-    """A subcommand whose flags tyro generates from a config class (imported on use)."""
+           check: Callable[[list[str]], list[str] | None] | None = None
+           ) -> Callable[[list[str]], int]:
+    """A subcommand whose flags tyro generates from a config class (imported on use).
+    ``check`` may refuse the arguments, or return them rewritten."""
     def main(args: list[str]) -> int:
         if check is not None:
-            check(args)
+            args = check(args) or args
         cls, run = load()
         return run(tyro.cli(cls, args=args, prog=f"rovergate {prog}",
                             description=cls.__doc__))
@@ -129,10 +131,12 @@ def _study():
     return StudyConfig, main
 
 
-def _refuse_owned_flags(args: list[str]) -> None:
-    """``--mission.X`` for what the study sets itself is refused, not silently ignored."""
-    from mission.study import refuse_owned_mission_flags
+def _study_args(args: list[str]) -> list[str]:
+    """``--mission.X`` for what the study sets itself is refused, not silently ignored; a
+    ``--preset`` becomes its flags, placed before the ones given (which win)."""
+    from mission.study import preset_args, refuse_owned_mission_flags
     refuse_owned_mission_flags(args)
+    return preset_args(args)
 
 
 def _credentials():
@@ -158,7 +162,7 @@ COMMANDS: dict[str, Command] = {
                           _typed("eval-model", _eval_model)),
     "study": Command("the paper's controlled study: every (scene, start, condition, "
                      "repetition) in parallel workers, resumable; writes runs.csv, table1.md, "
-                     "table2.md and plots", _typed("study", _study, _refuse_owned_flags)),
+                     "table2.md and plots", _typed("study", _study, _study_args)),
     "ground": Command("the ground station: shows and records the downlinked telemetry, sends "
                       "commands (pause, resume, abort, set, condition, planner) up in the "
                       "next contact window", _typed("ground", _ground)),

@@ -84,7 +84,8 @@ class StudyConfig:
     given; the others set the fields they name over them."""
     preset: str = ""
     """A named design (PRESETS): `validation` is the paper's required validation (issue 16).
-    It fills in every study setting left at its default; flags given override it."""
+    On the command line it stands for its flags, placed before the ones given: a flag given
+    wins over the preset's."""
     workers: int = 0
     """Worker processes (0: one per CPU core). Each runs one mission at a time."""
     torch_threads: int = 1
@@ -137,7 +138,7 @@ SENSING_PROFILES: dict[str, dict] = {
     "nominal": {}, "degraded": DEGRADED, "drift": DRIFT, "drift+degraded": {**DRIFT, **DEGRADED},
 }
 
-#: Named designs: StudyConfig fields each fills in where the command line left the default.
+#: Named designs: the StudyConfig fields each sets (see :func:`preset_args`).
 PRESETS: dict[str, dict] = {
     # The paper's validation list (issue 16): 6 scenes x start a x 5 conditions x 4 profiles x
     # 2 platforms x 2 repetitions = 480 runs of 100 steps, about an hour on 2 cores. It leaves
@@ -210,21 +211,40 @@ def cells(cfg: StudyConfig) -> list[tuple[str, str]]:
     return [(p, s) for p in cfg.platform for s in cfg.profiles]
 
 
-def apply_preset(cfg: StudyConfig) -> StudyConfig:
-    """Fill in the preset's settings where ``cfg`` has the default."""
-    if not cfg.preset:
-        return cfg
-    if cfg.preset not in PRESETS:
-        raise ConfigError(f"--preset {cfg.preset!r} is not a preset; the presets are "
+def _check_preset(name: str) -> dict:
+    if name not in PRESETS:
+        raise ConfigError(f"--preset {name!r} is not a preset; the presets are "
                           + ", ".join(PRESETS))
-    default = StudyConfig()
-    return replace(cfg, **{k: v for k, v in PRESETS[cfg.preset].items()
-                           if getattr(cfg, k) == getattr(default, k)})
+    return PRESETS[name]
+
+
+def preset_args(argv: list[str]) -> list[str]:
+    """The study's arguments with the preset's flags placed before them: the last value of a
+    flag wins, so every flag given overrides the preset's."""
+    name = None
+    for i, arg in enumerate(argv):
+        if arg == "--preset" and i + 1 < len(argv):
+            name = argv[i + 1]
+        elif arg.startswith("--preset="):
+            name = arg.partition("=")[2]
+    if not name:
+        return argv
+    flags = []
+    for key, value in _check_preset(name).items():
+        flags.append("--" + key.replace("_", "-"))
+        flags += [str(v) for v in value] if isinstance(value, tuple) else [str(value)]
+    return flags + argv
+
+
+def preset_config(name: str, **settings) -> StudyConfig:
+    """A preset's StudyConfig, with ``settings`` over it (the API's --preset)."""
+    return StudyConfig(**{**_check_preset(name), "preset": name, **settings})
 
 
 def check_study(cfg: StudyConfig) -> StudyConfig:
     """Validate the settings; one line for each kind of mistake. Returns them resolved."""
-    cfg = apply_preset(cfg)
+    if cfg.preset:
+        _check_preset(cfg.preset)
     if isinstance(cfg.platform, str):
         cfg = replace(cfg, platform=(cfg.platform,))
     cfg = replace(cfg, platform=tuple(dict.fromkeys(cfg.platform)),

@@ -39,6 +39,13 @@ BODY_MARGIN_M = 0.1
 this much under its clearance or over its top are obstacles)."""
 
 
+#: How much narrower (on every side) than the true body an escape is checked: about half the
+#: map's voxel, the error of a voxel-snapped surface sample. A rover that touched a rock
+#: stands where the simulator's bumper stopped it, a few centimetres from the true surface,
+#: and the rock's samples may lie closer than that to its body.
+ESCAPE_SHRINK_M = 0.08
+
+
 class OccupancyCollisionModel:
     """FCL model of one step's planner-facing occupancy."""
 
@@ -97,6 +104,10 @@ class OccupancyCollisionModel:
                                                  rover.width_m + 2 * BODY_MARGIN_M,
                                                  body_h + 2 * BODY_MARGIN_M))
         self._core = fcl.CollisionObject(fcl.Box(rover.length_m, rover.width_m, body_h))
+        # An escape's check: the true body less the map's own error on every side.
+        self._escape = fcl.CollisionObject(fcl.Box(rover.length_m - 2 * ESCAPE_SHRINK_M,
+                                                   rover.width_m - 2 * ESCAPE_SHRINK_M,
+                                                   body_h))
         self._body_dz = rover.clearance_m + body_h / 2
         self.checks = 0
         self.known_ground_only = False
@@ -269,10 +280,11 @@ class OccupancyCollisionModel:
             return bool(np.hypot(x - self.home[0], y - self.home[1]) <= self.home_radius)
         return bool(ok[i, j])
 
-    def is_free(self, x: float, y: float, yaw: float, margin: bool = True) -> bool:
+    def is_free(self, x: float, y: float, yaw: float, margin: bool | str = True) -> bool:
         """Whether the body at (x, y, yaw) on the estimated ground touches no obstacle point
         and stands within the rover's slope and step limits (``margin``: the body widened by
-        ``BODY_MARGIN_M``; without, the true body)."""
+        ``BODY_MARGIN_M``; False, the true body; "escape", the true body narrowed by
+        ``ESCAPE_SHRINK_M``, the check of an escape from a spot the map blocks)."""
         self.checks += 1
         if not self.traversable(x, y, yaw):
             return False
@@ -282,7 +294,7 @@ class OccupancyCollisionModel:
             self._manager = self._build_manager()
         c, s = np.cos(yaw), np.sin(yaw)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        body = self._body if margin else self._core
+        body = self._escape if margin == "escape" else self._body if margin else self._core
         body.setTransform(fcl.Transform(R, [x, y, self._body_dz]))  # plane-relative
         data = fcl.CollisionData(request=fcl.CollisionRequest())
         self._manager.collide(body, data, fcl.defaultCollisionCallback)

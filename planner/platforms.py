@@ -41,6 +41,8 @@ TURN_CHECK_RAD = np.radians(5.0)
 ESCAPE_M = 0.6
 #: Spacing of the escape's checks.
 ESCAPE_STEP_M = 0.05
+#: The rover's escape turns in place by these angles (degrees) before it drives, first to last.
+ESCAPE_TURNS_DEG = (0, 20, -20, 45, -45, 90, -90)
 #: How far inside the altitude band a flyer that left it returns (the band's edges move with
 #: the ground the map estimates, by a few centimetres a step).
 BAND_INSET_M = 0.1
@@ -69,10 +71,16 @@ class MotionModel(abc.ABC):
         prefix becomes [the blocked state] and planning starts where the escape ends."""
         if self.is_free(self.current):
             return
+        way = self.escape_way()
+        if way:
+            self.prefix = [self.current, *way[:-1]]
+            self.current = way[-1]
+
+    def escape_way(self) -> list[State]:
+        """The states an escape passes through from the blocked current one, ending in a
+        valid state; empty if there is none. By default a straight one (:meth:`escape`)."""
         end = self.escape()
-        if end is not None:
-            self.prefix = [self.current]
-            self.current = end
+        return [] if end is None else [end]
 
     def escape(self) -> State | None:
         """A valid state a checked straight escape reaches from the blocked current one."""
@@ -232,20 +240,46 @@ class RoverModel(MotionModel):
     def turn(self, s: State) -> State:
         return (s[0], s[1], s[2] + np.pi / 2)
 
-    def escape(self) -> State | None:
-        """Forward, then backward, along the heading: every state of the way keeps the true
-        body (no margin) off the map's obstacles on traversable ground, the end is valid."""
+    def escape_way(self) -> list[State]:
+        """The shortest of: a turn in place of at most 90 degrees (or none), then a straight
+        move of at most ``ESCAPE_M`` in one of eight directions of the body (ahead, behind,
+        sideways, diagonal: the rover moves in SE(2) as its planner plans it, OMPL's
+        straight interpolation of x, y and heading), ending in a valid state. Every state of
+        the way, checked every ``TURN_CHECK_RAD`` and ``ESCAPE_STEP_M``, is on traversable
+        ground in the scored region with the true body, narrowed by the map's error
+        (``ESCAPE_SHRINK_M``), off the map's obstacles: a rover the bumper stopped against a
+        rock stands closer to the rock's samples than the planner's margin, often closer than
+        its true body, and a rock along its side blocks it ahead and behind and swings into
+        either end when it turns in place. Length: the move plus the turn's sweep at the
+        body's corner."""
         x, y, yaw = self.current
         box = self.inner_box()
-        for sign in (1.0, -1.0):
-            ux, uy = sign * np.cos(yaw), sign * np.sin(yaw)
-            for d in np.arange(ESCAPE_STEP_M, ESCAPE_M + 1e-9, ESCAPE_STEP_M):
-                s = (x + d * ux, y + d * uy, yaw)
-                if not _inside(s, box) or not self.ground.is_free(*s, margin=False):
-                    break
-                if self.is_free(s):
-                    return s
-        return None
+        free = lambda s: _inside(s, box) and self.ground.is_free(*s, margin="escape")  # noqa: E731
+        best: tuple[float, list[State]] | None = None
+        for turn in np.radians(ESCAPE_TURNS_DEG):
+            n = max(int(np.ceil(abs(turn) / TURN_CHECK_RAD)), 1)
+            if turn and not all(free((x, y, yaw + f * turn))
+                                for f in np.linspace(0.0, 1.0, n + 1)[1:]):
+                continue
+            swept = abs(turn) * self.reach_m
+            heading = yaw + turn
+            turned = [(x, y, heading)] if turn else []
+            if turn and self.is_free(turned[0]):
+                if best is None or swept < best[0]:
+                    best = (swept, turned)
+                continue
+            for direction in np.radians(np.arange(0, 360, 45)):
+                ux, uy = np.cos(heading + direction), np.sin(heading + direction)
+                for d in np.arange(ESCAPE_STEP_M, ESCAPE_M + 1e-9, ESCAPE_STEP_M):
+                    if best is not None and swept + d >= best[0]:
+                        break
+                    s = (x + d * ux, y + d * uy, heading)
+                    if not free(s):
+                        break
+                    if self.is_free(s):
+                        best = (swept + d, [*turned, s])
+                        break
+        return [] if best is None else best[1]
 
 
 class FlyerModel(MotionModel):

@@ -148,6 +148,38 @@ def test_a_rover_the_map_now_blocks_backs_out_with_its_true_body():
     assert model.current[0] < 0  # it backed away from the rock
 
 
+def test_a_rover_stopped_against_a_rock_along_its_side_moves_away_from_it():
+    cfg = mission("rover")
+    # A rock wall along the rover's right side, 6 cm out from it (half-width 0.35 m), as the
+    # bumper leaves it; its samples run the body's length and beyond, so straight ahead and
+    # straight back both keep the true body within a voxel of it, and a turn in place swings
+    # an end into it. With only those escapes the rover stayed where it was for the rest of
+    # the mission (canyon/a, beam planner).
+    wall = np.array([[x, -0.41 - dy, z] for x in np.arange(-1.0, 1.01, 0.1)
+                     for dy in (0.0, 0.1) for z in (0.4, 0.6)], dtype=np.float32)
+    here = Pose.from_xyz_yaw(0.0, 0.0, 0.0, 0.0)
+    model = RoverModel(cfg, np.vstack([ground(), wall]), here)
+    start = model.current
+    assert not model.is_free(start)
+    assert not model.ground.is_free(0.05, 0.0, 0.0, margin=False)  # nor can it creep along
+    model.leave_blocked_start()
+    assert model.prefix and model.prefix[0] == start and model.is_free(model.current)
+    # Sideways, away from the wall, heading kept: the shortest way out.
+    assert model.current[1] > 0 and model.current[2] == 0.0
+    assert model.current[1] == pytest.approx(0.15) and abs(model.current[0]) < 1e-9
+    # Every state of the way: the narrowed true body off the wall, the turn checked too.
+    way = [*model.prefix, model.current]
+    assert all(model.ground.is_free(*s, margin="escape") for s in way[1:])
+    assert np.hypot(*np.subtract(model.current[:2], start[:2])) <= 0.6 + 1e-9
+    # No way out at all (walled in on both sides, and ahead and behind): it stays.
+    box = np.vstack([wall, wall * [1, -1, 1],
+                     [[x, y, z] for x in (-0.62, 0.62) for y in np.arange(-0.4, 0.41, 0.1)
+                      for z in (0.4, 0.6)]]).astype(np.float32)
+    trapped = RoverModel(cfg, np.vstack([ground(), box]), here)
+    trapped.leave_blocked_start()
+    assert trapped.prefix == [] and trapped.current == start
+
+
 def test_the_flyer_keeps_to_known_free_space():
     cfg = mission("flyer")
     free = FreeSpace((-10, -10, -1, 10, 10, 6), 0.25, 0.3, 20.0)

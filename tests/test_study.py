@@ -26,6 +26,7 @@ from mission.study import (
 )
 from mission.tables import bootstrap_ci, table1, table2
 from rovergate.config import MissionConfig, SceneConfig, to_dict
+from rovergate.errors import ConfigError
 
 
 def test_final_coverage_auc_and_s70_on_hand_made_curves():
@@ -289,3 +290,111 @@ def test_other_mission_flags_reach_every_run(tmp_path: Path):
     saved = json.loads((run / "config.json").read_text())
     assert saved["sensing"]["noise_frac"] == 0.01 and saved["gate"]["k"] == 3
     assert (saved["steps"], saved["platform"], saved["in_process"]) == (2, "flyer", True)
+
+
+# ----------------------------------------------------------------------------- cells
+
+def test_the_validation_preset_stands_for_its_flags_and_a_flag_given_wins(tmp_path: Path):
+    import tyro
+
+    from mission.study import (
+        SENSING_PROFILES,
+        VALIDATION_CONDITIONS,
+        cells,
+        check_study,
+        preset_args,
+        preset_config,
+        run_specs,
+    )
+
+    def parsed(*argv):
+        return check_study(tyro.cli(StudyConfig, args=preset_args([*argv, "--out",
+                                                                   str(tmp_path)])))
+    cfg = parsed("--preset", "validation")
+    assert cfg.platform == ("flyer", "rover") and cfg.profiles == tuple(SENSING_PROFILES)
+    assert set(cfg.conditions) == set(VALIDATION_CONDITIONS) and cfg.steps == 100
+    assert len(cells(cfg)) == 8
+    specs = run_specs(cfg)
+    # 6 scenes x start a x 5 conditions x 4 profiles x 2 platforms x 2 repetitions.
+    assert len(specs) == 480 == len({s.id for s in specs})
+    assert "rover-drift+degraded-crater-a-gated-pose-r1" in {s.id for s in specs}
+    assert run_specs(check_study(replace(preset_config("validation"), out=tmp_path))) == specs
+    # A flag given wins over the preset's, even one equal to the default.
+    mine = parsed("--preset=validation", "--reps", "3", "--filter-reps", "3", "--platform",
+                  "rover")
+    assert mine.platform == ("rover",) and len(run_specs(mine)) == 6 * 5 * 4 * 3
+    with pytest.raises(ConfigError, match="'fast' is not a preset; the presets are validation"):
+        preset_args(["--preset", "fast"])
+
+
+def test_a_profile_sets_its_sensing_fields_over_the_missions_and_nothing_else():
+    from mission.study import DEGRADED, DRIFT, SENSING_PROFILES
+    own = MissionConfig()
+    own.sensing = replace(own.sensing, noise_frac=0.05, dropout_pixel_prob=0.2)
+    study_cfg = StudyConfig(mission=own, platform=("flyer", "rover"))
+    nominal = mission_config(study_cfg, RunSpec("crater", "a", "gated", 1, "rover", "nominal"),
+                             Path("x"))
+    assert nominal.platform == "rover" and nominal.sensing == own.sensing
+    both = mission_config(study_cfg, RunSpec("crater", "a", "gated", 1, "flyer",
+                                             "drift+degraded"), Path("x"))
+    assert both.platform == "flyer"
+    for k, v in {**DRIFT, **DEGRADED}.items():
+        assert getattr(both.sensing, k) == v
+    assert both.sensing.dropout_pixel_prob == 0.2  # not the profile's: the mission's
+    assert both.sensing.noise_frac == SENSING_PROFILES["degraded"]["noise_frac"]
+    assert both.sensing.drifts and not nominal.sensing.drifts
+
+
+def test_a_study_of_one_platform_keeps_its_settings_and_run_ids(tmp_path: Path):
+    """A plain study saves study.json as before cells existed, so it still resumes."""
+    from mission.study import _settings, check_study, run_specs
+    cfg = check_study(StudyConfig(scenes=("arch_field",), starts=("a",), conditions=("obs",),
+                                  reps=1, filter_reps=1, out=tmp_path))
+    assert _settings(cfg)["platform"] == "flyer" and "profiles" not in _settings(cfg)
+    assert {s.id for s in run_specs(cfg)} == {"arch_field-a-obs-r0", "arch_field-a-learned-r0"}
+
+
+def test_study_refuses_an_unknown_profile_in_one_line(tmp_path: Path):
+    from mission.study import check_study
+    with pytest.raises(ConfigError, match="--profiles: 'foggy' is not a sensing profile; the "
+                                          "profiles are nominal, degraded, drift"):
+        check_study(StudyConfig(profiles=("foggy",), out=tmp_path))
+
+
+def test_validation_tables_pool_suppression_as_ratios_of_sums():
+    from mission.validation import suppression
+    rows = [{"steps": 10, "suppressed_per_step": 10.0, "suppressed_fp_share": 0.9,
+             "predicted_fp_per_step": 20.0, "wrongly_withheld_per_step": 1.0},
+            {"steps": 10, "suppressed_per_step": 1.0, "suppressed_fp_share": 0.0,
+             "predicted_fp_per_step": 5.0, "wrongly_withheld_per_step": 1.0}]
+    s = suppression(rows)
+    # 91 of 110 withheld points were false positives (a mean of shares would say 0.45).
+    assert s["precision"] == pytest.approx(90 / 110)
+    assert s["recall"] == pytest.approx(90 / 250)
+    assert s["wrongly_withheld_per_step"] == 1.0
+
+
+@pytest.mark.e2e
+def test_a_study_of_cells_writes_each_cell_and_the_validation_tables(tmp_path: Path):
+    out = tmp_path / "v"
+    r = subprocess.run([*ROVERGATE, "study", "--platform", "flyer", "rover", "--profiles",
+                        "nominal", "drift", "--scenes", "arch_field", "--starts", "a",
+                        "--conditions", "gated-pose", "--reps", "2", "--filter-reps", "2",
+                        "--steps", "2", "--workers", "2", "--bootstrap", "200",
+                        "--no-progress", "--out", str(out)],
+                       capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = results(out)
+    assert len(rows) == 2 * 2 * 2 * 2  # platforms x profiles x (learned, gated-pose) x reps
+    assert {(x["platform"], x["profile"]) for x in rows} == {
+        (p, s) for p in ("flyer", "rover") for s in ("nominal", "drift")}
+    for cell in ("flyer-nominal", "flyer-drift", "rover-nominal", "rover-drift"):
+        assert "Learned (abs.)" in (out / cell / "table1.md").read_text()
+        assert len(results(out / cell)) == 4
+    drifted = json.loads((out / "runs" / "rover-drift-arch_field-a-gated-pose-r1" /
+                          "config.json").read_text())
+    assert drifted["platform"] == "rover" and drifted["sensing"]["drift_xy_m"] > 0
+    text = (out / "validation.md").read_text()
+    assert "## rover, drift" in text and "Gate, pose-aware" in text and "Placebo" in text
+    for name in ("validation_coverage.png", "validation_suppression.png", "summary.json"):
+        assert (out / name).stat().st_size > 0
