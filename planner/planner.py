@@ -162,7 +162,7 @@ class _Trajectory:
     states: list
     seen: np.ndarray
     """(P,) bool over the gain primitives seen by the views of ``states[1:]``."""
-    gain: int
+    gain: float
     travel_m: float
     first: int
     """Index of its first motion among the first level's candidates."""
@@ -207,8 +207,9 @@ class BeamPlanner(Planner):
                 seen = node.seen.copy()
                 seen[vis] = True
                 last = node.states[-1]
-                out.append(_Trajectory(node.states + [c], seen, node.gain + field.gain(vis,
-                                                                                  node.seen),
+                weight = pc.beam_discount ** (len(node.states) - 1)
+                out.append(_Trajectory(node.states + [c], seen,
+                                       node.gain + weight * field.gain(vis, node.seen),
                                        node.travel_m + float(np.linalg.norm(
                                            np.subtract(c[:dims], last[:dims]))),
                                        node.first))

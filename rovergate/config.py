@@ -223,6 +223,10 @@ class PlannerConfig:
     """Beam search: trajectories kept after each level."""
     beam_depth: int = 3
     """Beam search: steps of look-ahead (1 is the greedy choice over straight motions)."""
+    beam_discount: float = 1.0
+    """Beam search: the weight of a view's gain is this to the power of its level (0 for the
+    first motion): 1 scores a trajectory by its whole gain, below 1 favours the first motion's
+    own gain, the one the platform will execute before it replans."""
     beam_branch: int = 8
     """Beam search: candidates sampled from the end of each kept trajectory, after the first
     level."""
@@ -436,6 +440,9 @@ def check_values(cfg: MissionConfig) -> None:
     if not cfg.sensor.max_range_m > cfg.sensor.min_range_m:
         raise ConfigError(f"--sensor.max-range-m ({cfg.sensor.max_range_m}) must exceed "
                           f"--sensor.min-range-m ({cfg.sensor.min_range_m})")
+    if not 0 <= cfg.planner.beam_discount <= 1:
+        raise ConfigError(f"--planner.beam-discount must be between 0 and 1, got "
+                          f"{cfg.planner.beam_discount}")
     if not 0 < cfg.sensor.vfov_deg < 180:
         raise ConfigError(f"--sensor.vfov-deg must be between 0 and 180, got "
                           f"{cfg.sensor.vfov_deg}")

@@ -15,7 +15,7 @@ from mission.journal import KEEP_ALL, KEEP_LAST
 from mission.run import check_runnable
 from mission.transport import InProcessTransport
 from rovergate import graph
-from rovergate.config import GateConfig, MissionConfig, SensorConfig
+from rovergate.config import GateConfig, MissionConfig, PlannerConfig, SensorConfig
 from rovergate.errors import CheckpointError, ConfigError, UnknownNameError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,6 +90,8 @@ def _cfg(**kw) -> MissionConfig:
     ({"gate": GateConfig(epsilon_frac=0.0)}, ConfigError, "--gate.epsilon-frac must be positive"),
     ({"sensor": SensorConfig(min_range_m=5.0, max_range_m=2.0)}, ConfigError,
      "--sensor.max-range-m .* must exceed"),
+    ({"planner": PlannerConfig(beam_discount=1.5)}, ConfigError,
+     "--planner.beam-discount must be between 0 and 1, got 1.5"),
 ])
 def test_bad_settings_are_refused_before_anything_starts(change, error, match):
     with pytest.raises(error, match=match):

@@ -189,6 +189,36 @@ def test_the_beam_can_route_its_first_motions_around_an_obstacle():
         len(routed.rejected.poses), len(straight.rejected.poses))
 
 
+@pytest.mark.parametrize("platform", ["rover", "flyer"])
+def test_a_beam_that_discounts_its_look_ahead_to_nothing_is_the_one_level_beam(platform):
+    """--planner.beam-discount 0 weighs only the first motion's own gain: the same choice as a
+    beam one level deep (same candidates, same order, same OMPL seeds); 1 is the whole gain."""
+    import dataclasses
+    cfg = MissionConfig()
+    cfg.platform = platform
+    cfg.scene.bounds_m = BOUNDS
+    cfg.scene.d_scene_m = 30.0
+    ground = flat_ground(np.zeros((0, 3), np.float32))
+    targets = np.vstack([grid_wall(4.0, size=1.5), grid_wall(-4.0, size=1.5)])
+    pts = np.vstack([ground, targets])
+    src = np.r_[np.zeros(len(ground)), np.full(len(targets), Source.PREDICTED)].astype(np.uint8)
+    views = np.r_[np.full(len(ground), 5), np.zeros(len(targets))]
+    occ = PlannerMap(0, make_cloud(pts, PLANNER_DTYPE, source=src, views=views))
+    here = (Pose.from_xyz_yaw(0.0, 0.0, 0.0, 0.0) if platform == "rover"
+            else Pose.from_xyz_yaw_pitch(0.0, 0.0, 1.6, 0.0, 0.0))
+
+    def plan(**kw):
+        c = dataclasses.replace(cfg, planner=dataclasses.replace(cfg.planner, name="beam",
+                                                                 **kw))
+        return BeamPlanner(c).plan(0, occ, here)
+    none, one = plan(beam_discount=0.0), plan(beam_depth=1)
+    assert none.reason == one.reason == "best-feasible"
+    assert none.gain == one.gain > 0
+    assert [p.position.tolist() for p in none.path.poses] == [
+        p.position.tolist() for p in one.path.poses]
+    assert plan(beam_discount=1.0).gain >= none.gain  # the whole look-ahead counts
+
+
 def test_map_points_inside_the_rover_body_are_not_obstacles():
     """The body occupies the space where it stands (a self filter)."""
     from planner.platforms import outside_body
