@@ -9,17 +9,89 @@ The planner then receives S_t together with O_hat_t minus U_t. U_t is recomputed
 every step over the current prediction and all frustums so far, so later surface support
 near a point restores it. Frustum inclusion is the paper's exposure proxy: inside the image,
 in front of the camera, between the sensor's minimum and maximum range. It ignores occlusion.
+
+The support test is incremental and exact (:class:`SurfaceSupport`): S_t only grows, so a
+prediction supported once stays supported while the radius does not shrink, and the surface
+is indexed in a large k-d tree rebuilt now and then plus a small one of what came since.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from gate.views import pixels
+from gate.views import pixels, row_keys
 from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics
 
 _CHUNK_FRUSTUMS = 16
+
+
+class SurfaceSupport:
+    """Which points have an observed surface point within a radius, step after step.
+
+    Exactly ``min_{p in S} ||x - p|| <= radius`` (as one k-d tree of S answers it), computed
+    incrementally on two facts. The surface only grows at its end (the mapper appends; a
+    surface that is not an extension of the last one, as after a restart, starts it over).
+    So a point supported at one step is supported at every later one with a radius no
+    smaller: points are remembered by their exact coordinates (predictions repeat from one
+    step to the next), and only the others are queried. The surface is indexed in a k-d tree
+    of a prefix, rebuilt when what came since exceeds ``REBUILD_SHARE`` of it, and a small
+    tree of that tail; a point's distance is the smaller of the two trees' answers.
+    """
+
+    #: The tail grows to this share of the indexed prefix (and at least ``REBUILD_MIN``
+    #: points) before the prefix's tree is rebuilt.
+    REBUILD_SHARE = 0.25
+    REBUILD_MIN = 2048
+
+    def __init__(self) -> None:
+        self._tree = None
+        self._n = 0                     # surface points in the prefix's tree
+        self._last: np.ndarray | None = None   # the last of them, to tell an extension
+        self._radius = 0.0              # the radius the remembered points were supported at
+        self._supported = row_keys(np.zeros((0, 3)))  # sorted rows of points known supported
+
+    def _index(self, surface: np.ndarray) -> np.ndarray:
+        """Bring the prefix's tree up to date; returns the tail not in it."""
+        n = self._n
+        extension = n <= len(surface) and (n == 0 or np.array_equal(surface[n - 1],
+                                                                    self._last))
+        if not extension:
+            self._tree, self._n, n = None, 0, 0
+            self._supported = self._supported[:0]
+        if self._tree is None or len(surface) - n > max(self.REBUILD_SHARE * n,
+                                                        self.REBUILD_MIN):
+            self._tree = kdtree(surface) if len(surface) else None
+            self._n = n = len(surface)
+            self._last = np.array(surface[-1]) if n else None
+        return surface[n:]
+
+    def supported(self, points: np.ndarray, surface: np.ndarray, radius: float) -> np.ndarray:
+        """(N,) bool: an observed surface point lies within ``radius`` of the point."""
+        points = np.asarray(points, dtype=np.float32)
+        surface = np.asarray(surface, dtype=np.float32)
+        out = np.zeros(len(points), dtype=bool)
+        if len(points) == 0 or len(surface) == 0:
+            return out
+        tail = self._index(surface)
+        if radius < self._radius:
+            self._supported = self._supported[:0]
+        self._radius = radius
+        rows = row_keys(points)
+        known = self._supported
+        if len(known):
+            i = np.minimum(np.searchsorted(known, rows), len(known) - 1)
+            out = known[i] == rows
+        ask = np.flatnonzero(~out)
+        if len(ask) and self._tree is not None:
+            d, _ = self._tree.query(points[ask], k=1, distance_upper_bound=radius)
+            out[ask] = ~(d > radius)
+            ask = ask[d > radius]
+        if len(ask) and len(tail):
+            d, _ = kdtree(tail).query(points[ask], k=1, distance_upper_bound=radius)
+            out[ask] = ~(d > radius)
+        self._supported = np.sort(rows[out])  # what the next step's points may repeat
+        return out
 
 
 class ObservationGate:
@@ -35,6 +107,7 @@ class ObservationGate:
         self._R_cam_map: list[np.ndarray] = []
         self._t_cam_map: list[np.ndarray] = []
         self._intrinsics: list[CameraIntrinsics] = []
+        self._support = SurfaceSupport()
 
     @property
     def n_frustums(self) -> int:
@@ -92,21 +165,17 @@ class ObservationGate:
             counts[active] += inside.sum(axis=0, dtype=np.int32)
         return counts
 
-    def support_distance(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
-        """(N,) distance from each point to the nearest observed surface point (inf if none
-        within epsilon: only the comparison with epsilon matters)."""
-        if len(surface_map) == 0:
-            return np.full(len(points_map), np.inf)
-        d, _ = kdtree(surface_map).query(points_map, k=1,
-                                         distance_upper_bound=self.support_radius_m)
-        return d
+    def supported(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
+        """(N,) bool: an observed surface point lies within the support radius of the point
+        (epsilon; the surface ``surface_map`` is S_t, which only grows from step to step)."""
+        return self._support.supported(points_map, surface_map, self.support_radius_m)
 
     def unsupported(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
         """(N,) bool mask of U_t: exposed at least K times with no support within epsilon."""
         if len(points_map) == 0:
             return np.zeros(0, dtype=bool)
         # Supported points are never in U_t: count exposures only for the others.
-        out = self.support_distance(points_map, surface_map) > self.support_radius_m
+        out = ~self.supported(points_map, surface_map)
         candidates = np.flatnonzero(out)
         out[candidates] = self.exposure_counts(points_map[candidates], stop_at=self.k) >= self.k
         return out
@@ -295,8 +364,7 @@ class SplitGate(RayGate):
         if len(points_map) == 0:
             return gain, collision
         # Equation 4's shortcut for both channels: supported points are in neither.
-        candidates = np.flatnonzero(
-            self.support_distance(points_map, surface_map) > self.support_radius_m)
+        candidates = np.flatnonzero(~self.supported(points_map, surface_map))
         unsupported = points_map[candidates]
         gain[candidates] = self.exposure_counts(unsupported, stop_at=self.k) >= self.k
         collision[candidates] = self.seen_through_from_two_places(unsupported)

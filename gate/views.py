@@ -27,7 +27,7 @@ from rovergate.types import CameraIntrinsics
 _CHUNK = 8  # frames projected at once
 
 
-def _rows(points: np.ndarray) -> np.ndarray:
+def row_keys(points: np.ndarray) -> np.ndarray:
     """1-D void view of (N, 3) float32 rows: exact keys for matching points across steps."""
     p = np.ascontiguousarray(points, dtype=np.float32)
     return p.view(np.dtype((np.void, 12))).ravel()
@@ -100,9 +100,9 @@ class ViewCounter:
         """Views of a point set that changes every step (predictions, oracle points): points
         seen at the last call (same coordinates) add the frames since; others count them all."""
         n_frames = len(self.frames)
-        done, keys, counts = self._keyed.get(part, (0, _rows(np.zeros((0, 3))),
+        done, keys, counts = self._keyed.get(part, (0, row_keys(np.zeros((0, 3))),
                                                     np.zeros(0, np.int64)))
-        rows = _rows(points)
+        rows = row_keys(points)
         out = np.empty(len(points), dtype=np.int64)
         hit = np.zeros(len(points), dtype=bool)
         if len(keys) and len(rows):

@@ -507,3 +507,30 @@ def test_gated_split_marks_each_point_with_the_channels_it_serves():
     assert out.suppressed == 2
     assert len(out.serving(Channel.GAIN).points) == len(out.points) - 2
     assert len(out.serving(Channel.COLLISION).points) == len(out.points)
+
+
+def test_the_incremental_support_test_is_the_brute_force_one_step_after_step():
+    """SurfaceSupport against min ||x - p|| <= radius over a surface that grows at its end,
+    predictions that partly repeat, a radius that grows and shrinks, and a surface that
+    starts over (not an extension: as after a restart)."""
+    from gate.filter import SurfaceSupport
+    rng = np.random.default_rng(3)
+    support = SurfaceSupport()
+    support.REBUILD_MIN = 50  # rebuild the prefix's tree often, keep a tail too
+    surface = np.zeros((0, 3), np.float32)
+    predicted = rng.uniform(0, 10, (400, 3)).astype(np.float32)
+    radii = [0.5, 0.5, 0.8, 0.8, 0.4, 0.4, 1.0, 1.0, 1.0, 0.6]
+    for step, radius in enumerate(radii):
+        if step == 7:
+            surface = rng.uniform(0, 10, (30, 3)).astype(np.float32)  # starts over
+        else:
+            surface = np.vstack([surface, rng.uniform(0, 10, (40 + 20 * step, 3))]
+                                ).astype(np.float32)
+        keep = rng.random(len(predicted)) < 0.7  # 70% repeat, the rest are new
+        predicted = np.vstack([predicted[keep], rng.uniform(0, 10, (int((~keep).sum()), 3))]
+                              ).astype(np.float32)
+        got = support.supported(predicted, surface, radius)
+        d = np.linalg.norm(predicted[:, None].astype(np.float64) - surface[None], axis=2)
+        assert np.array_equal(got, d.min(axis=1) <= radius), step
+        assert 0 < got.sum() < len(predicted), step  # both kinds occur
+    assert not support.supported(predicted, surface[:0], 1.0).any()
