@@ -212,6 +212,10 @@ def plot_coverage(rows: list[dict], cfg, out: Path) -> str:
     return name
 
 
+def _count(n: float) -> str:
+    return f"{n / 1e6:.1f}M" if n >= 1e6 else f"{n / 1e3:.0f}k" if n >= 1e4 else f"{n:.0f}"
+
+
 def plot_suppression(figures: dict, cfg, out: Path) -> str:
     variants = [c for c in cfg.conditions if get_condition(c).withholds]
     fig, axes = plt.subplots(len(cfg.platform), 2, squeeze=False,
@@ -223,15 +227,25 @@ def plot_suppression(figures: dict, cfg, out: Path) -> str:
                                           ("recall", "suppression recall"))):
             ax = axes[i][j]
             for k, c in enumerate(variants):
-                v = [figures[p]["profiles"][s].get(c, {}).get(key) for s in cfg.profiles]
-                ax.bar(x + (k - (len(variants) - 1) / 2) * width,
-                       [np.nan if y is None else y for y in v], width, label=c)
+                cells = [figures[p]["profiles"][s].get(c, {}) for s in cfg.profiles]
+                v = [cell.get(key) for cell in cells]
+                xs = x + (k - (len(variants) - 1) / 2) * width
+                ax.bar(xs, [np.nan if y is None else y for y in v], width, label=c)
+                for xi, yi, cell in zip(xs, v, cells, strict=True):
+                    # How many points the share is of: a precision over a handful is no
+                    # evidence of anything.
+                    n = cell.get("predicted_fp" if key == "recall" else "withheld")
+                    if n is not None and yi is not None:
+                        ax.text(xi, min(yi, 0.93) + 0.02, _count(n), ha="center",
+                                fontsize=6, rotation=90)
             if key == "precision":
                 ax.axhline(PRECISION_TARGET, color="grey", ls=":", lw=1)
-            ax.set(title=f"{p}: {title} (pooled over runs)", ylim=(0, 1), xticks=x,
+            ax.set(title=f"{p}: {title}", ylim=(0, 1.1), xticks=x,
                    xticklabels=cfg.profiles)
             ax.grid(alpha=0.3, axis="y")
     axes[0][0].legend(fontsize=7, loc="lower left")
+    fig.suptitle("Pooled over runs (ratios of sums); on each bar, the point-steps the share "
+                 "is of", fontsize=9)
     fig.tight_layout()
     name = "validation_suppression.png"
     fig.savefig(out / name, dpi=100)
