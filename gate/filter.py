@@ -29,9 +29,11 @@ _CHUNK_FRUSTUMS = 16
 class SurfaceSupport:
     """Which points have an observed surface point within a radius, step after step.
 
-    Exactly ``min_{p in S} ||x - p|| <= radius`` (as one k-d tree of S answers it), computed
-    incrementally on two facts. The surface only grows at its end (the mapper appends; a
-    surface that is not an extension of the last one, as after a restart, starts it over).
+    Exactly ``min_{p in S} ||x - p|| <= radius`` (as one k-d tree of S answers it), for any
+    sequence of calls, computed incrementally on two facts. The surface only grows at its end
+    (the mapper appends; a surface that is not an extension of the last call's, as after a
+    restart, forgets what was remembered, and one that is not an extension of the indexed
+    prefix rebuilds the tree).
     So a point supported at one step is supported at every later one with a radius no
     smaller: points are remembered by their exact coordinates (predictions repeat from one
     step to the next), and only the others are queried. The surface is indexed in a k-d tree
@@ -48,17 +50,23 @@ class SurfaceSupport:
         self._tree = None
         self._n = 0                     # surface points in the prefix's tree
         self._last: np.ndarray | None = None   # the last of them, to tell an extension
+        self._seen = (0, None)          # the last call's surface: its length and last point
         self._radius = 0.0              # the radius the remembered points were supported at
         self._supported = row_keys(np.zeros((0, 3)))  # sorted rows of points known supported
 
+    @staticmethod
+    def _extends(surface: np.ndarray, n: int, last: np.ndarray | None) -> bool:
+        """Whether ``surface`` begins with a surface of ``n`` points ending in ``last``."""
+        return n <= len(surface) and (n == 0 or np.array_equal(surface[n - 1], last))
+
     def _index(self, surface: np.ndarray) -> np.ndarray:
         """Bring the prefix's tree up to date; returns the tail not in it."""
-        n = self._n
-        extension = n <= len(surface) and (n == 0 or np.array_equal(surface[n - 1],
-                                                                    self._last))
-        if not extension:
-            self._tree, self._n, n = None, 0, 0
+        if not self._extends(surface, *self._seen):  # what was remembered may be gone
             self._supported = self._supported[:0]
+        self._seen = (len(surface), np.array(surface[-1]) if len(surface) else None)
+        n = self._n
+        if not self._extends(surface, n, self._last):
+            self._tree, self._n, n = None, 0, 0
         if self._tree is None or len(surface) - n > max(self.REBUILD_SHARE * n,
                                                         self.REBUILD_MIN):
             self._tree = kdtree(surface) if len(surface) else None
@@ -67,7 +75,8 @@ class SurfaceSupport:
         return surface[n:]
 
     def supported(self, points: np.ndarray, surface: np.ndarray, radius: float) -> np.ndarray:
-        """(N,) bool: an observed surface point lies within ``radius`` of the point."""
+        """(N,) bool: an observed surface point lies within ``radius`` of the point (both
+        taken as float32, the map's own precision)."""
         points = np.asarray(points, dtype=np.float32)
         surface = np.asarray(surface, dtype=np.float32)
         out = np.zeros(len(points), dtype=bool)

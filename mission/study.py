@@ -85,7 +85,7 @@ class StudyConfig:
     preset: str = ""
     """A named design (PRESETS): `validation` is the paper's required validation (issue 16).
     On the command line it stands for its flags, placed before the ones given: a flag given
-    wins over the preset's."""
+    wins over the preset's. In Python, build it with :func:`preset_config`."""
     workers: int = 0
     """Worker processes (0: one per CPU core). Each runs one mission at a time."""
     torch_threads: int = 1
@@ -204,11 +204,17 @@ class RunSpec:
         return f"{self.platform}-{self.profile}"
 
 
+def _names(value: str | tuple[str, ...]) -> tuple[str, ...]:
+    """A name or names, as a tuple without repeats (``platform="rover"`` is one platform)."""
+    return (value,) if isinstance(value, str) else tuple(dict.fromkeys(value))
+
+
 def cells(cfg: StudyConfig) -> list[tuple[str, str]]:
     """The study's (platform, profile) cells; empty for a study of one platform, nominal."""
-    if len(cfg.platform) == 1 and tuple(cfg.profiles) == ("nominal",):
+    platforms, profiles = _names(cfg.platform), _names(cfg.profiles)
+    if len(platforms) == 1 and profiles == ("nominal",):
         return []
-    return [(p, s) for p in cfg.platform for s in cfg.profiles]
+    return [(p, s) for p in platforms for s in profiles]
 
 
 def _check_preset(name: str) -> dict:
@@ -244,11 +250,12 @@ def preset_config(name: str, **settings) -> StudyConfig:
 def check_study(cfg: StudyConfig) -> StudyConfig:
     """Validate the settings; one line for each kind of mistake. Returns them resolved."""
     if cfg.preset:
-        _check_preset(cfg.preset)
-    if isinstance(cfg.platform, str):
-        cfg = replace(cfg, platform=(cfg.platform,))
-    cfg = replace(cfg, platform=tuple(dict.fromkeys(cfg.platform)),
-                  profiles=tuple(dict.fromkeys(cfg.profiles)))
+        preset = _check_preset(cfg.preset)
+        default = StudyConfig()
+        if all(getattr(cfg, k) == getattr(default, k) for k in preset):
+            raise ConfigError(f"StudyConfig(preset={cfg.preset!r}) alone sets nothing; build "
+                              f"it with mission.study.preset_config({cfg.preset!r}, ...)")
+    cfg = replace(cfg, platform=_names(cfg.platform), profiles=_names(cfg.profiles))
     if not cfg.platform or not cfg.profiles:
         raise ConfigError("--platform and --profiles each need at least one value")
     for p in cfg.profiles:
@@ -366,6 +373,19 @@ def _settings(cfg: StudyConfig) -> dict:
     return d
 
 
+def _normalised(saved: dict | None) -> dict | None:
+    """Saved settings with the mission's settings that did not exist when they were saved
+    filled in at their defaults (what those runs ran with), so that a study resumes across a
+    release that added a setting."""
+    if not isinstance(saved, dict) or not isinstance(saved.get("mission"), dict):
+        return saved
+    try:
+        mission = to_dict(from_dict(MissionConfig, saved["mission"]))
+    except Exception:  # not ours to judge here: it simply does not match
+        return saved
+    return {**saved, "mission": mission}
+
+
 def _terminate(signum, frame) -> None:
     raise KeyboardInterrupt  # leaving the pool's context terminates its workers
 
@@ -385,7 +405,7 @@ def main(cfg: StudyConfig) -> int:
         except ValueError:
             raise ConfigError(f"{settings_path} is not valid JSON; delete it, or give "
                               "--out a new directory") from None
-        if saved.get("settings") != settings:
+        if _normalised(saved.get("settings")) != settings:
             raise ConfigError(f"{out} holds a study with other settings; give --out a "
                               f"new directory, or delete {out} to start this one there")
         sessions = saved.get("sessions", [])

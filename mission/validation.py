@@ -90,7 +90,7 @@ def _placebo(rows: list[dict], metric: str, key=lambda r: (r["scene"], r["start"
 def suppression(rows: list[dict]) -> dict:
     """Pooled suppression figures of some runs of one withholding condition (ratios of sums),
     and the mean true surface wrongly withheld per step."""
-    withheld = fp = predicted_fp = 0.0
+    withheld = fp = predicted_fp = recalled = 0.0
     for r in rows:
         held, share = r.get("suppressed_per_step"), r.get("suppressed_fp_share")
         steps = r["steps"]
@@ -98,11 +98,13 @@ def suppression(rows: list[dict]) -> dict:
             withheld += held * steps
             if share is not None and math.isfinite(share):
                 fp += held * share * steps
-        if r.get("predicted_fp_per_step") is not None:
+        if r.get("predicted_fp_per_step") is not None and share is not None \
+                and math.isfinite(share) and held is not None:
             predicted_fp += r["predicted_fp_per_step"] * steps
+            recalled += held * share * steps
     return {"withheld": withheld, "withheld_fp": fp, "predicted_fp": predicted_fp,
             "precision": fp / withheld if withheld else None,
-            "recall": fp / predicted_fp if predicted_fp else None,
+            "recall": recalled / predicted_fp if predicted_fp else None,
             "wrongly_withheld_per_step": _mean(r.get("wrongly_withheld_per_step")
                                                for r in rows)}
 
@@ -127,7 +129,15 @@ def _failures(rows: list[dict]) -> dict:
                                         and math.isfinite(r["fp_gain_share"])),
             "gate_s_median": float(np.median(gate)) if gate else None,
             "gate_share_of_step": (float(np.median(gate)) / float(np.median(step))
-                                   if gate and step else None)}
+                                   if gate and step and np.median(step) > 0 else None)}
+
+
+def _reps(rows: list[dict]) -> dict:
+    out: dict = {}
+    for r in rows:
+        out.setdefault((r["platform"], r["profile"], r["scene"], r["start"], r["condition"]),
+                       set()).add(r["rep"])
+    return out
 
 
 def _s(v, digits=3, signed=False) -> str:
@@ -276,7 +286,9 @@ def write_validation(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
     with_profile = lambda r: (r["profile"], r["scene"], r["start"])  # noqa: E731
     text = ["# The paper's required validation: gate variants under degraded sensing and drift",
             "", f"{cfg.steps} steps; scenes {', '.join(cfg.scenes)}; starts "
-            f"{', '.join(cfg.starts)}; repetitions {cfg.reps} (seeds 0 to {cfg.reps - 1}); "
+            f"{', '.join(cfg.starts)}; repetitions per condition and unit "
+            f"{', '.join(str(n) for n in sorted({len(v) for v in _reps(rows).values()}))} "
+            "(repetition r runs with seed r); "
             f"{len(rows)} of {len(specs)} runs finished. Sensing profiles: see "
             "`mission.study.SENSING_PROFILES`.", ""]
     figures: dict = {}
@@ -315,8 +327,13 @@ def write_validation(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
             if c in (BASELINE, "placebo") or "delta_c_t" not in fig:
                 continue
             ci = fig["delta_c_t"]["ci95"]
+            if not ci:  # no learned run to pair with
+                text.append(f"- {p}, {c}: no learned runs to pair with.")
+                continue
             vg = fig.get("delta_vs_gated", {}).get("ci95")
-            meets = (ci and ci[0] > 0 and (c == FILTER or (vg and vg[0] > 0))
+            # A bootstrap over one unit is that unit's value: at least two units to count.
+            meets = (fig["delta_c_t"]["n"] >= 2 and ci[0] > 0
+                     and (c == FILTER or (vg and vg[0] > 0))
                      and fig["collisions_planner_fault"] == 0)
             text.append(f"- {p}, {c}: pooled ΔC_T vs learned CI {_s(ci[0], 3, True)} to "
                         f"{_s(ci[1], 3, True)}" + (f", vs frustum gate {_s(vg[0], 3, True)} "

@@ -534,3 +534,11 @@ def test_the_incremental_support_test_is_the_brute_force_one_step_after_step():
         assert np.array_equal(got, d.min(axis=1) <= radius), step
         assert 0 < got.sum() < len(predicted), step  # both kinds occur
     assert not support.supported(predicted, surface[:0], 1.0).any()
+    # A surface that loses its tail, or has it rewritten, forgets the support it gave.
+    fresh = SurfaceSupport()
+    prefix = rng.uniform(0, 10, (3000, 3)).astype(np.float32)
+    x = np.array([[20.0, 20.0, 20.0]], np.float32)
+    assert fresh.supported(x, np.vstack([prefix, x + 0.1]), 0.5).tolist() == [True]
+    assert fresh.supported(x, prefix, 0.5).tolist() == [False]
+    assert fresh.supported(x, np.vstack([prefix, x + 0.1]), 0.5).tolist() == [True]
+    assert fresh.supported(x, np.vstack([prefix, x + 3.0]), 0.5).tolist() == [False]

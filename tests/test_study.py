@@ -398,3 +398,25 @@ def test_a_study_of_cells_writes_each_cell_and_the_validation_tables(tmp_path: P
     assert "## rover, drift" in text and "Gate, pose-aware" in text and "Placebo" in text
     for name in ("validation_coverage.png", "validation_suppression.png", "summary.json"):
         assert (out / name).stat().st_size > 0
+
+
+def test_a_preset_named_in_python_without_its_settings_is_refused(tmp_path: Path):
+    from mission.study import check_study
+    with pytest.raises(ConfigError, match="alone sets nothing; build it with "
+                                          "mission.study.preset_config"):
+        check_study(StudyConfig(preset="validation", out=tmp_path))
+
+
+def test_a_study_saved_before_a_mission_setting_existed_still_resumes(tmp_path: Path):
+    """Settings saved without a mission setting added since are read with it at its
+    default (what those runs ran with), so the study resumes."""
+    from mission.study import _normalised, _settings, check_study
+    cfg = check_study(StudyConfig(scenes=("arch_field",), starts=("a",), conditions=("obs",),
+                                  reps=1, filter_reps=1, out=tmp_path))
+    now = _settings(cfg)
+    old = json.loads(json.dumps(now))
+    del old["mission"]["planner"]["beam_discount"]
+    assert old != now and _normalised(old) == now
+    other = json.loads(json.dumps(now))
+    other["mission"]["gate"]["k"] = 5
+    assert _normalised(other) != now
