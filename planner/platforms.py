@@ -192,9 +192,10 @@ class RoverModel(MotionModel):
                  predicted: np.ndarray | None = None, free: FreeSpace | None = None,
                  contacts: np.ndarray | None = None) -> None:
         # The rover's counterpart of known free space is known ground (drive_known_ground_only).
+        # The self filter is for map points; a contact is where the bumper touched the scene,
+        # on the body's own surface when the touch was where the rover now stands: it stays,
+        # and the rover escapes it (escape_way) instead of driving into it again.
         keep = outside_body(points, T_map_base, cfg.rover)
-        if contacts is not None and len(contacts):
-            contacts = contacts[outside_body(contacts, T_map_base, cfg.rover)]
         super().__init__(cfg, points[keep], T_map_base,
                          None if predicted is None else predicted[keep], contacts)
         if cfg.planner.known_ground_only:
@@ -250,11 +251,20 @@ class RoverModel(MotionModel):
         (``ESCAPE_SHRINK_M``), off the map's obstacles: a rover the bumper stopped against a
         rock stands closer to the rock's samples than the planner's margin, often closer than
         its true body, and a rock along its side blocks it ahead and behind and swings into
-        either end when it turns in place. Length: the move plus the turn's sweep at the
-        body's corner."""
+        either end when it turns in place. The narrowing is for the map's error only: where
+        the bumper touched the scene (a contact, exact) the way never comes nearer than where
+        it starts. Length: the move plus the turn's sweep at the body's corner."""
         x, y, yaw = self.current
         box = self.inner_box()
-        free = lambda s: _inside(s, box) and self.ground.is_free(*s, margin="escape")  # noqa: E731
+        near = self.contacts[np.hypot(self.contacts[:, 0] - x, self.contacts[:, 1] - y)
+                             < ESCAPE_M + self.reach_m + 0.5, :2] if len(self.contacts) else None
+        start_gap = self._contact_gap(self.current, near)
+
+        def free(s: State) -> bool:
+            # The narrowed body allows for the map's error, not for a contact's: a contact
+            # is exact, and the way may not come nearer to one than where it starts.
+            return (_inside(s, box) and self.ground.is_free(*s, margin="escape")
+                    and self._contact_gap(s, near) >= start_gap - 1e-9)
         best: tuple[float, list[State]] | None = None
         for turn in np.radians(ESCAPE_TURNS_DEG):
             n = max(int(np.ceil(abs(turn) / TURN_CHECK_RAD)), 1)
@@ -280,6 +290,18 @@ class RoverModel(MotionModel):
                         best = (swept + d, [*turned, s])
                         break
         return [] if best is None else best[1]
+
+    def _contact_gap(self, s: State, contacts: np.ndarray | None) -> float:
+        """The smallest distance in the plane from ``contacts`` (K, 2) to the true body's
+        footprint at ``s`` (0 for one inside it; inf without contacts)."""
+        if contacts is None or not len(contacts):
+            return np.inf
+        c, sn = np.cos(s[2]), np.sin(s[2])
+        d = contacts - np.array(s[:2])
+        bx, by = d[:, 0] * c + d[:, 1] * sn, -d[:, 0] * sn + d[:, 1] * c
+        ex = np.maximum(np.abs(bx) - self.cfg.rover.length_m / 2, 0.0)
+        ey = np.maximum(np.abs(by) - self.cfg.rover.width_m / 2, 0.0)
+        return float(np.hypot(ex, ey).min())
 
 
 class FlyerModel(MotionModel):

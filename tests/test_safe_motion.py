@@ -180,6 +180,28 @@ def test_a_rover_stopped_against_a_rock_along_its_side_moves_away_from_it():
     assert trapped.prefix == [] and trapped.current == start
 
 
+def test_a_rover_touching_the_scene_where_it_stands_escapes_away_from_the_contact():
+    """The bumper touched the scene at the rover's rear right corner where it now stands
+    (arch_field/a, seed 1: before, the self filter dropped that contact as a point inside the
+    body, and the rover drove into it again seven steps running)."""
+    cfg = mission("rover")
+    here = Pose.from_xyz_yaw(0.0, 0.0, 0.0, 0.0)
+    contact = np.array([[-0.51, -0.36, 0.6]], dtype=np.float32)
+    model = RoverModel(cfg, ground(), here, contacts=contact)
+    start = model.current
+    assert len(model.contacts) == 1 and not model.is_free(start)
+    # Backing up, or moving right, comes nearer.
+    gap = model._contact_gap(start, model.contacts[:, :2])
+    assert model._contact_gap((-0.05, 0.0, 0.0), model.contacts[:, :2]) < gap
+    assert model._contact_gap((0.0, -0.05, 0.0), model.contacts[:, :2]) < gap
+    model.leave_blocked_start()
+    assert model.prefix and model.is_free(model.current)
+    way = [*model.prefix, model.current]
+    gaps = [model._contact_gap(s, model.contacts[:, :2]) for s in way]
+    assert all(b >= gaps[0] for b in gaps[1:]) and gaps[-1] >= 0.1
+    assert model.current[0] > 0 or model.current[1] > 0  # away: ahead or to the left
+
+
 def test_the_flyer_keeps_to_known_free_space():
     cfg = mission("flyer")
     free = FreeSpace((-10, -10, -1, 10, 10, 6), 0.25, 0.3, 20.0)
