@@ -80,8 +80,9 @@ class StudyConfig:
     With more than one, or with --profiles, every (platform, profile) is a cell of its own
     (see the module docstring)."""
     profiles: tuple[str, ...] = ("nominal",)
-    """Sensing profiles (SENSING_PROFILES): `nominal` runs the --mission.sensing settings as
-    given; the others set the fields they name over them."""
+    """Sensing profiles: nominal, degraded, drift, drift+degraded (SENSING_PROFILES; levels
+    in the README). `nominal` runs the --mission.sensing settings as given; the others set
+    the fields they name over them."""
     preset: str = ""
     """A named design (PRESETS): `validation` is the paper's required validation (issue 16).
     On the command line it stands for its flags, placed before the ones given: a flag given
