@@ -98,10 +98,13 @@ def suppression(rows: list[dict]) -> dict:
             withheld += held * steps
             if share is not None and math.isfinite(share):
                 fp += held * share * steps
-        if r.get("predicted_fp_per_step") is not None and share is not None \
-                and math.isfinite(share) and held is not None:
+        # Recall counts the runs that record its denominator, and what they withheld: none
+        # (no share: nothing withheld), or their share of it.
+        known = share is not None and math.isfinite(share)
+        if r.get("predicted_fp_per_step") is not None and held is not None \
+                and (held == 0 or known):
             predicted_fp += r["predicted_fp_per_step"] * steps
-            recalled += held * share * steps
+            recalled += held * share * steps if held else 0.0
     return {"withheld": withheld, "withheld_fp": fp, "predicted_fp": predicted_fp,
             "precision": fp / withheld if withheld else None,
             "recall": recalled / predicted_fp if predicted_fp else None,

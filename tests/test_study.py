@@ -367,10 +367,13 @@ def test_validation_tables_pool_suppression_as_ratios_of_sums():
              "predicted_fp_per_step": 20.0, "wrongly_withheld_per_step": 1.0},
             {"steps": 10, "suppressed_per_step": 1.0, "suppressed_fp_share": 0.0,
              "predicted_fp_per_step": 5.0, "wrongly_withheld_per_step": 1.0}]
+    # A run that withheld nothing has no share, and still had false positives to withhold.
+    rows.append({"steps": 10, "suppressed_per_step": 0.0, "suppressed_fp_share": None,
+                 "predicted_fp_per_step": 10.0, "wrongly_withheld_per_step": 1.0})
     s = suppression(rows)
-    # 91 of 110 withheld points were false positives (a mean of shares would say 0.45).
+    # 90 of 110 withheld points were false positives (a mean of shares would say 0.45).
     assert s["precision"] == pytest.approx(90 / 110)
-    assert s["recall"] == pytest.approx(90 / 250)
+    assert s["recall"] == pytest.approx(90 / 350)
     assert s["wrongly_withheld_per_step"] == 1.0
 
 
