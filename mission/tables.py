@@ -668,6 +668,17 @@ def plot_curves(curves: dict[str, list], out: Path) -> list[str]:
     return names
 
 
+def write_runs_csv(rows: list[dict], path: Path) -> None:
+    """runs.csv: one row per run, every field but the coverage curve (nothing if no rows)."""
+    if not rows:
+        return
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if k != "coverage"],
+                           extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+
+
 def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
                  runs_dir: Path | None = None, platform: str | None = None,
                  sessions: list | None = None) -> dict:
@@ -677,12 +688,7 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
     unless given). A cell of a study passes its own directory, platform and the study's
     sessions."""
     rows, curves = load_rows(specs, runs_dir or out / "runs")
-    if rows:
-        with open(out / "runs.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if k != "coverage"],
-                               extrasaction="ignore")
-            w.writeheader()
-            w.writerows(rows)
+    write_runs_csv(rows, out / "runs.csv")
     t1, f1 = table1(rows, cfg.conditions, cfg.bootstrap, cfg.steps)
     tf, ff = failure_modes(rows, cfg.conditions)
     tr, fr = robustness(rows, cfg.conditions, cfg.bootstrap)

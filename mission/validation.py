@@ -18,7 +18,6 @@ points withheld; recall = true false positives withheld / oracle false positives
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from dataclasses import replace
@@ -39,6 +38,7 @@ from mission.tables import (  # noqa: E402
     _fmt,
     _mean,
     load_rows,
+    write_runs_csv,
     write_tables,
 )
 from rovergate.conditions import get_condition  # noqa: E402
@@ -280,12 +280,7 @@ def write_validation(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
                 replace(cfg, platform=(p,)), cell, out / f"{p}-{s}", runs_dir=out / "runs",
                 platform=p, sessions=sessions)
             rows += load_rows(cell, out / "runs")[0]
-    if rows:
-        with open(out / "runs.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=[k for k in rows[0] if k != "coverage"],
-                               extrasaction="ignore")
-            w.writeheader()
-            w.writerows(rows)
+    write_runs_csv(rows, out / "runs.csv")
     with_profile = lambda r: (r["profile"], r["scene"], r["start"])  # noqa: E731
     text = ["# The paper's required validation: gate variants under degraded sensing and drift",
             "", f"{cfg.steps} steps; scenes {', '.join(cfg.scenes)}; starts "
