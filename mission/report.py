@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from mission.record import MissionRecord  # noqa: E402
 from planner.planner import planner_name  # noqa: E402
+from rover_sim.overview import SURFACE_CMAP  # noqa: E402
 from rovergate.config import MissionConfig  # noqa: E402
 
 
@@ -61,26 +62,41 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
     fig.savefig(out / "coverage.png", dpi=120)
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(6, 6))
+    fig = topdown_figure(cfg, record)
+    fig.savefig(out / "map_topdown.png", dpi=120)
+    plt.close(fig)
+    return metrics
+
+
+def topdown_figure(cfg: MissionConfig, record: MissionRecord):
+    """The top-down map: S_T coloured by height, the platform's path with its start and end,
+    and its collisions by class; the legend below the map, where it hides nothing."""
+    fig, ax = plt.subplots(figsize=(6, 7))
+    ax.set_facecolor("white")  # unseen space; the surface's colours never reach white
     s = record.surface_xyz
     if len(s):
-        sc = ax.scatter(s[:, 0], s[:, 1], c=s[:, 2], s=0.3, cmap="terrain")
-        fig.colorbar(sc, ax=ax, label="z (m)", shrink=0.8)
+        sc = ax.scatter(s[:, 0], s[:, 1], c=s[:, 2], s=0.3, cmap=SURFACE_CMAP)
+        fig.colorbar(sc, ax=ax, label="z (m)", shrink=0.7)
+    vehicle = cfg.platform
     if record.base_xy:
         xy = list(zip(*record.base_xy, strict=True))
-        ax.plot(xy[0], xy[1], "-o", color="crimson", ms=2, lw=1.2, label="rover path")
-        ax.plot(*record.base_xy[0], "k^", ms=8, label="start")
+        ax.plot(xy[0], xy[1], "-o", color="crimson", ms=2, lw=1.2, label=f"{vehicle} path",
+                zorder=3)
+        ax.plot(*record.base_xy[0], "^", color="black", mfc="yellow", ms=10, mew=1.5,
+                label="start", zorder=4)
+        ax.plot(*record.base_xy[-1], "s", color="black", mfc="deepskyblue", ms=9, mew=1.5,
+                label="end", zorder=4)
     for cls, marker in (("planner-fault", "rx"), ("unseen-geometry", "mx")):
         hits = [record.base_xy[i + 1] for i, k in enumerate(record.collision_class)
                 if k == cls and i + 1 < len(record.base_xy)]
         if hits:
             ax.plot(*zip(*hits, strict=True), marker, ms=10, mew=2,
-                    label=f"collision ({cls})")
+                    label=f"collision ({cls})", zorder=5)
     b = cfg.scene.bounds_m
     ax.set(xlim=(b[0], b[3]), ylim=(b[1], b[4]), aspect="equal", xlabel="x (m)", ylabel="y (m)",
-           title="observed surface S_T (top-down) and rover path")
-    ax.legend(loc="upper right", fontsize=8)
+           title=f"observed surface S_T (top-down) and {vehicle} path")
+    # Below the map, not on it: a legend inside the axes hid the start and part of the path.
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=8,
+              frameon=False)
     fig.tight_layout()
-    fig.savefig(out / "map_topdown.png", dpi=120)
-    plt.close(fig)
-    return metrics
+    return fig

@@ -31,6 +31,14 @@ def describe(scene: Scene, kind: str) -> list[str]:
     return lines
 
 
+#: The colours of a surface by height, in every picture (the scenes', a mission's map): none
+#: white or near it, the colour of unseen space ("terrain" turns white at its top, so high
+#: ground read as unseen).
+SURFACE_CMAP = "viridis"
+#: Gain on the rendered colours of the 3-D view.
+BRIGHTEN = 1.25
+
+
 def oblique_view(scene: Scene, width: int = 640, height: int = 400) -> np.ndarray:
     """(H, W, 3) uint8 RGB view of the scene from above one corner of its box of interest."""
     cid = pb.connect(pb.DIRECT)
@@ -42,9 +50,14 @@ def oblique_view(scene: Scene, width: int = 640, height: int = 400) -> np.ndarra
         view = pb.computeViewMatrix(eye.tolist(), centre.tolist(), [0, 0, 1],
                                     physicsClientId=cid)
         proj = pb.computeProjectionMatrixFOV(50, width / height, 0.5, 400, physicsClientId=cid)
+        # More ambient light than pybullet's default (the faces turned from the light were
+        # near black), and a little stretch of what comes back.
         rgb = pb.getCameraImage(width, height, view, proj, renderer=pb.ER_TINY_RENDERER,
-                                lightDirection=[-1, -0.5, 2], physicsClientId=cid)[2]
-        return np.asarray(rgb, dtype=np.uint8).reshape(height, width, 4)[..., :3]
+                                lightDirection=[-1, -0.5, 2], lightAmbientCoeff=0.75,
+                                lightDiffuseCoeff=0.55, lightSpecularCoeff=0.05,
+                                physicsClientId=cid)[2]
+        img = np.asarray(rgb, dtype=np.uint8).reshape(height, width, 4)[..., :3]
+        return np.clip(img.astype(np.float32) * BRIGHTEN, 0, 255).astype(np.uint8)
     finally:
         pb.disconnect(cid)
 
@@ -56,7 +69,7 @@ def render_overview(scene: Scene, path: Path) -> None:
     pts = scene.surface_samples(25_000, seed=0)
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1, 1.3]})
     order = np.argsort(pts[:, 2])
-    sc = ax.scatter(pts[order, 0], pts[order, 1], c=pts[order, 2], s=0.4, cmap="terrain")
+    sc = ax.scatter(pts[order, 0], pts[order, 1], c=pts[order, 2], s=0.4, cmap=SURFACE_CMAP)
     fig.colorbar(sc, ax=ax, label="z (m)", shrink=0.8)
     for name, (x, y, t) in scene.starts.items():
         ax.annotate("", xy=(x + 1.5 * np.cos(t), y + 1.5 * np.sin(t)), xytext=(x, y),

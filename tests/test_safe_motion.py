@@ -260,3 +260,4 @@ def test_gain_share_and_rejections_from_oracle_false_positives():
     truth_only = planner_map(floor)
     d = evaluator.decision(truth_only, PlanPath(0, [here, goal]), PlanPath(0, []), here)
     assert d.fp_gain_share == 0.0 and d.rejected_by_fp == 0
+
