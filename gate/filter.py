@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gate.views import pixels, row_keys
+from gate.views import extends, pixels, row_keys
 from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics
 
@@ -54,18 +54,13 @@ class SurfaceSupport:
         self._radius = 0.0              # the radius the remembered points were supported at
         self._supported = row_keys(np.zeros((0, 3)))  # sorted rows of points known supported
 
-    @staticmethod
-    def _extends(surface: np.ndarray, n: int, last: np.ndarray | None) -> bool:
-        """Whether ``surface`` begins with a surface of ``n`` points ending in ``last``."""
-        return n <= len(surface) and (n == 0 or np.array_equal(surface[n - 1], last))
-
     def _index(self, surface: np.ndarray) -> np.ndarray:
         """Bring the prefix's tree up to date; returns the tail not in it."""
-        if not self._extends(surface, *self._seen):  # what was remembered may be gone
+        if not extends(surface, *self._seen):  # what was remembered may be gone
             self._supported = self._supported[:0]
         self._seen = (len(surface), np.array(surface[-1]) if len(surface) else None)
         n = self._n
-        if not self._extends(surface, n, self._last):
+        if not extends(surface, n, self._last):
             self._tree, self._n, n = None, 0, 0
         if self._tree is None or len(surface) - n > max(self.REBUILD_SHARE * n,
                                                         self.REBUILD_MIN):

@@ -33,6 +33,12 @@ def row_keys(points: np.ndarray) -> np.ndarray:
     return p.view(np.dtype((np.void, 12))).ravel()
 
 
+def extends(points: np.ndarray, n: int, last: np.ndarray | None) -> bool:
+    """Whether ``points`` begins with an earlier set of ``n`` points that ended in ``last``
+    (the observed surface only grows at its end; anything else starts the count over)."""
+    return n <= len(points) and (n == 0 or np.array_equal(points[n - 1], last))
+
+
 def pixels(points: np.ndarray, R: np.ndarray, t: np.ndarray, k: CameraIntrinsics,
            min_range_m: float, max_range_m: float
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -87,7 +93,7 @@ class ViewCounter:
         done, counts, last = self._grown.get(part, (0, np.zeros(0, np.int64),
                                                     np.zeros((0, 3), np.float32)))
         n_old = len(counts)
-        if n_old > len(points) or (n_old and not np.array_equal(points[n_old - 1], last)):
+        if not extends(points, n_old, last):
             done, counts, n_old = 0, np.zeros(0, np.int64), 0  # not an extension: start over
         out = np.empty(len(points), dtype=np.int64)
         out[:n_old] = counts + self.count(points[:n_old], first=done)

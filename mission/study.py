@@ -315,9 +315,8 @@ def mission_config(cfg: StudyConfig, spec: RunSpec, run_dir: Path) -> MissionCon
     m = from_dict(MissionConfig, to_dict(cfg.mission))  # a deep copy
     m.scene = replace(m.scene, name=spec.scene, d_scene_m=0.0, bounds_m=(0,) * 6)
     m.start, m.condition, m.seed, m.steps = spec.start, spec.condition, spec.rep, cfg.steps
-    platforms = (cfg.platform,) if isinstance(cfg.platform, str) else cfg.platform
-    m.platform, m.out, m.in_process, m.progress = (spec.platform or platforms[0], run_dir,
-                                                   True, False)
+    m.platform, m.out, m.in_process, m.progress = (spec.platform or _names(cfg.platform)[0],
+                                                   run_dir, True, False)
     if spec.profile:
         m.sensing = replace(m.sensing, **SENSING_PROFILES[spec.profile])
     return m

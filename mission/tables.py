@@ -151,22 +151,28 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
 
 # ----------------------------------------------------------------------------- statistics
 
-def _runs(rows: list[dict], condition: str) -> dict[Start, dict[int, dict]]:
-    """The runs of one condition, by start and then by repetition."""
+def start_of(row: dict) -> Start:
+    """The unit of the study's statistics: the start (scene, start name)."""
+    return row["scene"], row["start"]
+
+
+def _runs(rows: list[dict], condition: str, key=start_of) -> dict[Start, dict[int, dict]]:
+    """The runs of one condition, by unit (``key``, default the start) and repetition."""
     out: dict[Start, dict[int, dict]] = {}
     for r in rows:
         if r["condition"] == condition:
-            out.setdefault((r["scene"], r["start"]), {})[r["rep"]] = r
+            out.setdefault(key(r), {})[r["rep"]] = r
     return out
 
 
-def paired_deltas(rows: list[dict], condition: str, metric: str
-                  ) -> dict[Start, dict[int, float]]:
-    """Per start and repetition r: ``metric`` of the condition's run r minus that of the
-    learned run r (same seed). Repetitions missing either run, or the metric, are left out."""
-    base = _runs(rows, BASELINE)
+def paired_deltas(rows: list[dict], condition: str, metric: str, reference: str = BASELINE,
+                  key=start_of) -> dict[Start, dict[int, float]]:
+    """Per start (or unit: ``key``) and repetition r: ``metric`` of the condition's run r
+    minus that of the ``reference`` (learned) run r (same seed). Repetitions missing either
+    run, or the metric, are left out."""
+    base = _runs(rows, reference, key)
     out = {}
-    for k, runs in _runs(rows, condition).items():
+    for k, runs in _runs(rows, condition, key).items():
         twins = base.get(k, {})
         d = {r: run[metric] - twins[r][metric] for r, run in sorted(runs.items())
              if r in twins and run.get(metric) is not None
@@ -176,26 +182,29 @@ def paired_deltas(rows: list[dict], condition: str, metric: str
     return out
 
 
-def per_start_effects(rows: list[dict], condition: str, metric: str) -> dict[Start, float]:
-    """Per start: the mean over repetitions of the paired deltas (condition − learned); for
-    the learned condition itself, the absolute mean of its runs."""
-    if condition == BASELINE:
+def per_start_effects(rows: list[dict], condition: str, metric: str,
+                      reference: str = BASELINE, key=start_of) -> dict[Start, float]:
+    """Per start (or unit: ``key``): the mean over repetitions of the paired deltas
+    (condition − ``reference``, learned); for the reference itself, the absolute mean of its
+    runs."""
+    if condition == reference:
         means = {k: _mean(run.get(metric) for run in runs.values())
-                 for k, runs in _runs(rows, BASELINE).items()}
+                 for k, runs in _runs(rows, reference, key).items()}
         return {k: m for k, m in means.items() if m is not None}
     return {k: float(np.mean(list(d.values())))
-            for k, d in paired_deltas(rows, condition, metric).items()}
+            for k, d in paired_deltas(rows, condition, metric, reference, key).items()}
 
 
-def placebo_effects(rows: list[dict], metric: str) -> dict[Start, float | None]:
+def placebo_effects(rows: list[dict], metric: str, key=start_of
+                    ) -> dict[Start, float | None]:
     """Per start: the learned condition against itself, mean(odd) − mean(even).
 
     The learned runs having ``metric`` are taken in repetition order and split by position:
     positions 1, 3, ... against positions 0, 2, ... (with repetitions 0, 1, 2: r1 − mean(r0,
     r2)). The split is fixed before looking at any number. None where a start has fewer than
-    two learned runs."""
+    two learned runs. ``key``: the unit, default the start."""
     out: dict[Start, float | None] = {}
-    for k, runs in _runs(rows, BASELINE).items():
+    for k, runs in _runs(rows, BASELINE, key).items():
         v = [runs[r][metric] for r in sorted(runs) if runs[r].get(metric) is not None]
         out[k] = float(np.mean(v[1::2]) - np.mean(v[0::2])) if len(v) >= 2 else None
     return out
@@ -680,14 +689,14 @@ def write_runs_csv(rows: list[dict], path: Path) -> None:
 
 
 def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
-                 runs_dir: Path | None = None, platform: str | None = None,
-                 sessions: list | None = None) -> dict:
+                 platform: str | None = None, sessions: list | None = None,
+                 loaded: tuple[list[dict], dict[str, list]] | None = None) -> dict:
     """runs.csv, table1.md (with the failure modes and the robustness check below it),
     table2.md, the plots, coverage_curves.csv and summary.json of the study in ``out``
-    (its runs in ``runs_dir``, default ``out/runs``; its sessions from ``out/study.json``
+    (its runs in ``out/runs``; its sessions from ``out/study.json``
     unless given). A cell of a study passes its own directory, platform and the study's
-    sessions."""
-    rows, curves = load_rows(specs, runs_dir or out / "runs")
+    sessions, and the rows and curves it has read (``loaded``: :func:`load_rows`'s)."""
+    rows, curves = loaded or load_rows(specs, out / "runs")
     write_runs_csv(rows, out / "runs.csv")
     t1, f1 = table1(rows, cfg.conditions, cfg.bootstrap, cfg.steps)
     tf, ff = failure_modes(rows, cfg.conditions)

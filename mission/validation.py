@@ -38,6 +38,9 @@ from mission.tables import (  # noqa: E402
     _fmt,
     _mean,
     load_rows,
+    per_start_effects,
+    placebo_effects,
+    start_of,
     write_runs_csv,
     write_tables,
 )
@@ -53,38 +56,6 @@ DRIFTING = ("drift", "drift+degraded")
 POSE_TARGET = 0.5
 #: Target of the issue: pooled suppression precision of the ray-consistent gate.
 PRECISION_TARGET = 0.9
-
-
-def _unit_deltas(rows: list[dict], condition: str, reference: str, metric: str,
-                 key=lambda r: (r["scene"], r["start"])) -> dict:
-    """Per unit: the mean over repetitions r of (condition run r − reference run r)."""
-    def by_unit(c):
-        out: dict = {}
-        for r in rows:
-            if r["condition"] == c and r.get(metric) is not None:
-                out.setdefault(key(r), {})[r["rep"]] = r[metric]
-        return out
-    cond, ref = by_unit(condition), by_unit(reference)
-    out = {}
-    for k, runs in cond.items():
-        d = [v - ref[k][r] for r, v in runs.items() if r in ref.get(k, {})]
-        if d:
-            out[k] = float(np.mean(d))
-    return out
-
-
-def _placebo(rows: list[dict], metric: str, key=lambda r: (r["scene"], r["start"])) -> dict:
-    """Per unit: learned runs in repetition order, mean(odd positions) − mean(even ones)."""
-    by: dict = {}
-    for r in rows:
-        if r["condition"] == BASELINE and r.get(metric) is not None:
-            by.setdefault(key(r), {})[r["rep"]] = r[metric]
-    out = {}
-    for k, runs in by.items():
-        v = [runs[r] for r in sorted(runs)]
-        if len(v) >= 2:
-            out[k] = float(np.mean(v[1::2]) - np.mean(v[0::2]))
-    return out
 
 
 def suppression(rows: list[dict]) -> dict:
@@ -148,7 +119,7 @@ def _s(v, digits=3, signed=False) -> str:
 
 
 def cell_table(rows: list[dict], conditions: tuple[str, ...], resamples: int,
-               key=lambda r: (r["scene"], r["start"])) -> tuple[list[str], dict]:
+               key=start_of) -> tuple[list[str], dict]:
     """The rows of one platform and profile (or of all profiles of a platform, with ``key``
     including the profile): one line per condition and the placebo."""
     lines, figures = [], {}
@@ -157,19 +128,14 @@ def cell_table(rows: list[dict], conditions: tuple[str, ...], resamples: int,
         if not runs:
             continue
         fig: dict = {}
-        if c == BASELINE:
-            per_unit: dict = {}
-            for r in runs:
-                per_unit.setdefault(key(r), []).append(r["final_coverage"])
-            text, fig["final_coverage"] = _cell([float(np.mean(v)) for v in per_unit.values()],
-                                                False, 3, resamples)
-            vs_gate = "—"
+        effect = per_start_effects(rows, c, "final_coverage", key=key)
+        vs_gate = "—"
+        if c == BASELINE:  # absolute
+            text, fig["final_coverage"] = _cell(list(effect.values()), False, 3, resamples)
         else:
-            d = _unit_deltas(rows, c, BASELINE, "final_coverage", key)
-            text, fig["delta_c_t"] = _cell(list(d.values()), True, 3, resamples)
-            vs_gate = "—"
+            text, fig["delta_c_t"] = _cell(list(effect.values()), True, 3, resamples)
             if c != FILTER and get_condition(c).withholds:
-                g = _unit_deltas(rows, c, FILTER, "final_coverage", key)
+                g = per_start_effects(rows, c, "final_coverage", reference=FILTER, key=key)
                 vs_gate, fig["delta_vs_gated"] = _cell(list(g.values()), True, 3, resamples)
         sup = suppression(runs) if get_condition(c).withholds else {}
         fail = _failures(runs)
@@ -185,8 +151,9 @@ def cell_table(rows: list[dict], conditions: tuple[str, ...], resamples: int,
             f"{fail['stuck_steps']} ({fail['stuck_runs']}) | "
             f"{_s(fail['min_clearance_m_median'], 2)} | "
             f"{_s(fail['gate_s_median'], 4)} ({_s(fail['gate_share_of_step'], 3)}) |")
-    p = _placebo(rows, "final_coverage", key)
-    text, figures["placebo"] = _cell(list(p.values()), True, 3, resamples)
+    p = placebo_effects(rows, "final_coverage", key)
+    text, figures["placebo"] = _cell([v for v in p.values() if v is not None], True, 3,
+                                     resamples)
     lines.append(f"| Placebo (learned vs learned) | — | {text} | — | | | | | | | | |")
     return lines, figures
 
@@ -276,10 +243,11 @@ def write_validation(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
         for s in cfg.profiles:
             cell = [x for x in specs if (x.platform, x.profile) == (p, s)]
             (out / f"{p}-{s}").mkdir(exist_ok=True)
+            loaded = load_rows(cell, out / "runs")
             cell_summaries[f"{p}-{s}"] = write_tables(
-                replace(cfg, platform=(p,)), cell, out / f"{p}-{s}", runs_dir=out / "runs",
-                platform=p, sessions=sessions)
-            rows += load_rows(cell, out / "runs")[0]
+                replace(cfg, platform=(p,)), cell, out / f"{p}-{s}", platform=p,
+                sessions=sessions, loaded=loaded)
+            rows += loaded[0]
     write_runs_csv(rows, out / "runs.csv")
     with_profile = lambda r: (r["profile"], r["scene"], r["start"])  # noqa: E731
     text = ["# The paper's required validation: gate variants under degraded sensing and drift",
