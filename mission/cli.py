@@ -139,6 +139,11 @@ def _study_args(args: list[str]) -> list[str]:
     return preset_args(args)
 
 
+def _replay():
+    from ecosystem.replay import ReplayConfig, main
+    return ReplayConfig, main
+
+
 def _credentials():
     from mission.credentials import CredentialsConfig, main
     return CredentialsConfig, main
@@ -160,6 +165,8 @@ COMMANDS: dict[str, Command] = {
                      "CPU cores)", _typed("train", _train)),
     "eval-model": Command("precision / recall of the learned occupancy on held-out scenes",
                           _typed("eval-model", _eval_model)),
+    "replay": Command("publish a recorded mission (OUT/bag) again over Zenoh, on the keys it "
+                      "was recorded from, at its pace or --speed", _typed("replay", _replay)),
     "study": Command("the paper's controlled study: every (scene, start, condition, "
                      "repetition) in parallel workers, resumable; writes runs.csv, table1.md, "
                      "table2.md and plots", _typed("study", _study, _study_args)),
@@ -195,7 +202,7 @@ def main(argv: list[str] | None = None) -> None:
     # Installed explicitly, because a process started in the background may inherit an
     # ignored SIGINT. The study has its own (it has worker processes to stop); training,
     # evaluation and the scene listing stop at once on KeyboardInterrupt.
-    if argv[0] in ("run", "ground", *LAUNCHED):
+    if argv[0] in ("run", "ground", "replay", *LAUNCHED):
         signal.signal(signal.SIGINT, _interrupt)
         signal.signal(signal.SIGTERM, _interrupt)
     tune_allocator()

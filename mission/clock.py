@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from typing import TYPE_CHECKING
 
 import zenoh
 
@@ -12,6 +13,9 @@ from rovergate.messages import encode
 from rovergate.node import cdr_encoding
 from rovergate.types import MissionStatus
 
+if TYPE_CHECKING:
+    from ecosystem.taps import Taps
+
 
 class MissionClock:
     """Publishes the mission's status: a ``running`` tick starts a step (and is journalled,
@@ -19,8 +23,11 @@ class MissionClock:
     ``done`` or ``aborted`` ends them."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, journal: Journal,
-                 lock: threading.Condition | threading.Lock) -> None:
+                 lock: threading.Condition | threading.Lock, taps: Taps | None = None
+                 ) -> None:
+        """``taps`` (the flight recorder, the live view) get every status it publishes."""
         self.journal = journal
+        self.taps = taps
         self._lock = lock
         # BLOCK: every tick is awaited; zenoh's default DROP may discard one under load.
         self._publisher = session.declare_publisher(
@@ -33,6 +40,8 @@ class MissionClock:
             with self._lock:
                 self.journal.add("status", status.step, payload)
         self._publisher.put(payload)
+        if self.taps:
+            self.taps.put("status", payload)
 
     def close(self) -> None:
         self._publisher.undeclare()

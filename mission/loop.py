@@ -10,11 +10,12 @@ the ground runs at every step boundary (:class:`mission.operations.Operations`).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,6 +34,7 @@ from rovergate.module import STOP
 from rovergate.types import Channel, MissionStatus, Source, xyz
 
 if TYPE_CHECKING:
+    from ecosystem.taps import Taps
     from mission.operations import Operations
 
 log = logging.getLogger("rovergate.mission")
@@ -177,9 +179,44 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
     return record
 
 
+def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False) -> tuple[Taps, Any]:
+    """The taps of a mission (:mod:`ecosystem.taps`): the flight recorder unless
+    ``--no-record``, the live view with ``--viz``. Returns the taps and the recorder (None
+    when not recording)."""
+    from ecosystem.taps import Taps
+    taps = Taps([])
+    recorder = None
+    try:
+        if cfg.record:
+            from ecosystem.recorder import FlightRecorder, fresh_bag_dir
+            recorder = FlightRecorder(fresh_bag_dir(out, resumed), cfg.session.namespace,
+                                      cfg.record_compression)
+            taps.taps.append(recorder)
+        if cfg.viz:
+            from ecosystem.live_view import LiveView
+            from rover_sim.catalog import load_scene
+            taps.taps.append(LiveView(cfg.viz_host, cfg.viz_port, cfg.session.namespace,
+                                      load_scene(cfg.scene)))
+    except BaseException:
+        taps.close()
+        raise
+    return taps, recorder
+
+
+def _recording(recorder: Any) -> dict:
+    """What the flight recorder wrote (metrics.json's ``recording``)."""
+    return dataclasses.asdict(recorder.stats) if recorder is not None else {}
+
+
 def run_in_process(cfg: MissionConfig, on_step: OnStep | None = None) -> MissionRecord:
     """The mission with every module in this process, without Zenoh (the study's runs)."""
-    return run_mission(cfg, InProcessTransport(cfg), on_step)
+    taps, recorder = _open_taps(cfg, Path(cfg.out))
+    try:
+        record = run_mission(cfg, InProcessTransport(cfg, taps), on_step)
+    finally:
+        taps.close()
+    record.recording = _recording(recorder)
+    return record
 
 
 def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
@@ -190,9 +227,14 @@ def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
     from mission.operations import Operations
     from mission.process_set import ProcessSetTransport
     out = Path(cfg.out)
-    transport = ProcessSetTransport(cfg, out, {**resume.transport, "step": resume.step}
-                                    if resume else None)
-    factory = (lambda: Operations(transport)) if cfg.contact.enabled else None
-    record = run_mission(cfg, transport, on_step, factory, checkpoint=out, resume=resume)
+    taps, recorder = _open_taps(cfg, out, resumed=resume is not None)
+    try:
+        transport = ProcessSetTransport(cfg, out, {**resume.transport, "step": resume.step}
+                                        if resume else None, taps)
+        factory = (lambda: Operations(transport)) if cfg.contact.enabled else None
+        record = run_mission(cfg, transport, on_step, factory, checkpoint=out, resume=resume)
+    finally:
+        taps.close()
+    record.recording = _recording(recorder)
     remove_checkpoint(out)
     return record

@@ -33,7 +33,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -52,6 +52,9 @@ from rovergate.module import STOP
 from rovergate.node import check_and_decode
 from rovergate.session import open_session
 from rovergate.types import MissionStatus, StepTiming
+
+if TYPE_CHECKING:
+    from ecosystem.taps import Taps
 
 
 @dataclasses.dataclass
@@ -89,12 +92,14 @@ class ProcessSetTransport:
 
     mode = "processes"
 
-    def __init__(self, cfg: MissionConfig, out: Path, resume: dict[str, Any] | None = None
-                 ) -> None:
+    def __init__(self, cfg: MissionConfig, out: Path, resume: dict[str, Any] | None = None,
+                 taps: Taps | None = None) -> None:
         """``resume``: :meth:`snapshot` of the transport of a mission whose manager died; the
         journal in ``out`` is loaded and every module resumes at the step before
-        ``resume["step"]``."""
+        ``resume["step"]``. ``taps`` (the flight recorder, the live view) get every message
+        of the rover's network, as it travelled, once it decoded."""
         self._cfg = cfg
+        self.taps = taps
         self.out = out
         self._resume = resume
         out.mkdir(parents=True, exist_ok=True)
@@ -153,7 +158,7 @@ class ProcessSetTransport:
         and the reason."""
         cv = self.inbox.cv
         self.journal_server = JournalServer(self.session, self.keys, self.journal, cv)
-        self.clock = MissionClock(self.session, self.keys, self.journal, cv)
+        self.clock = MissionClock(self.session, self.keys, self.journal, cv, self.taps)
         self.config_path = out / "config.json"
         self._configs = 0
         if self._resume is not None:
@@ -248,9 +253,12 @@ class ProcessSetTransport:
                     count = self._dropped
                 log_drop(log, count, "message", self.keys.key(topic), exc)
                 return
+            payload = sample.payload.to_bytes()
+            if self.taps:
+                self.taps.put(topic, payload)
             with self.inbox.cv:
                 if journalled:
-                    self.journal.add(topic, step, sample.payload.to_bytes())
+                    self.journal.add(topic, step, payload)
                 if topic == "timing":
                     # A restarted module redoes its last step: one timing per stage and step.
                     self._timings[(value.module, value.step)] = value

@@ -59,6 +59,9 @@ class MissionRecord:
     wall_s: float = 0.0
     dropped_messages: int = 0
     mode: str = "in-process"
+    recording: dict = field(default_factory=dict)
+    """The flight recorder's bag (ecosystem/recorder.py): path, messages per topic, payload
+    and file bytes, the writer's seconds; empty when not recorded."""
 
     def add_stage(self, stage: str, seconds: float) -> None:
         self.stage_s.setdefault(stage, []).append(seconds)
@@ -111,6 +114,7 @@ class MissionRecord:
             "manager_resumes": self.resumes,
             "state": self.state,
             "link": self.link,
+            "recording": self.recording,
             "observed_points": int(len(self.surface_xyz)),
             "predicted_points_per_step": self.predicted_points,
             "planner_predicted_per_step": self.planner_predicted,

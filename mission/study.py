@@ -97,6 +97,10 @@ class StudyConfig:
     """Paired bootstrap resamples for the confidence intervals."""
     progress: bool = True
     """Show a progress bar with an ETA."""
+    record: bool = False
+    """Record every run's messages into OUT/runs/<id>/bag (`rovergate replay` plays one).
+    Off by default: a bag holds about 70 MB per 100 steps (README, "Recording and replay"),
+    which over a study's hundreds of runs is tens of GB."""
     mission: MissionConfig = field(default_factory=MissionConfig)
     """Every other mission setting (sensing, planner, gate, ...), as `rovergate run` takes
     them. The study sets the scene, start, condition, seed, steps, platform, out, in-process
@@ -121,6 +125,9 @@ OWNED_MISSION_FLAGS: dict[str, str] = {
     "out": "use --out {value} (each run goes to OUT/runs/<id>)",
     "in-process": "every run is in process; leave it out",
     "progress": "use --progress or --no-progress (the study's progress bar)",
+    "record": "use --record (the study's runs are not recorded unless it is given)",
+    "viz": "a study's runs are not served live; record them (--record) and watch one with "
+           "`rovergate replay OUT/runs/<id>/bag --viz`",
 }
 """The --mission flags (after ``--mission.``) of what :func:`mission_config` sets for every
 run, and what to do instead; ``{value}`` is the value given (VALUE if none)."""
@@ -317,6 +324,7 @@ def mission_config(cfg: StudyConfig, spec: RunSpec, run_dir: Path) -> MissionCon
     m.start, m.condition, m.seed, m.steps = spec.start, spec.condition, spec.rep, cfg.steps
     m.platform, m.out, m.in_process, m.progress = (spec.platform or _names(cfg.platform)[0],
                                                    run_dir, True, False)
+    m.record, m.viz = cfg.record, False
     if spec.profile:
         m.sensing = replace(m.sensing, **SENSING_PROFILES[spec.profile])
     return m
@@ -364,8 +372,9 @@ def _run_one(job: tuple[dict, str, str]) -> tuple[str, float, str | None]:
 def _settings(cfg: StudyConfig) -> dict:
     """What must match for a study directory to be resumed."""
     d = to_dict(cfg)
-    for k in ("workers", "torch_threads", "out", "bootstrap", "progress", "preset"):
+    for k in ("workers", "torch_threads", "out", "bootstrap", "progress", "preset", "record"):
         d.pop(k)
+    d["mission"] = _without_recording(d["mission"])
     # A study of one platform, nominal, saves its settings as studies did before cells.
     if not cells(cfg):
         d["platform"] = cfg.platform[0]
@@ -383,7 +392,15 @@ def _normalised(saved: dict | None) -> dict | None:
         mission = to_dict(from_dict(MissionConfig, saved["mission"]))
     except Exception:  # not ours to judge here: it simply does not match
         return saved
-    return {**saved, "mission": mission}
+    return {**saved, "mission": _without_recording(mission)}
+
+
+#: Mission settings that change what is written beside a run, never its figures.
+_RECORDING = ("record", "record_compression")
+
+
+def _without_recording(mission: dict) -> dict:
+    return {k: v for k, v in mission.items() if k not in _RECORDING}
 
 
 def _terminate(signum, frame) -> None:

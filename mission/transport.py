@@ -15,14 +15,17 @@ last digit.
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from rovergate.config import MissionConfig
 from rovergate.errors import MissionFailed
 from rovergate.graph import LAUNCHED, MODULES, consumers, producer
-from rovergate.messages import stamped
+from rovergate.messages import encode, stamped
 from rovergate.module import ModuleLogic
 from rovergate.types import MissionStatus, StepTiming
+
+if TYPE_CHECKING:
+    from ecosystem.taps import Taps
 
 
 class Transport(Protocol):
@@ -79,8 +82,11 @@ class InProcessTransport:
 
     mode = "in-process"
 
-    def __init__(self, cfg: MissionConfig) -> None:
+    def __init__(self, cfg: MissionConfig, taps: Taps | None = None) -> None:
+        """``taps`` (the flight recorder, the live view) get every message a module
+        publishes, encoded as the process set would send it."""
         self.cfg = cfg
+        self.taps = taps
         self.logic: dict[str, ModuleLogic] = {}
         self._buffers: dict[str, dict[str, dict[int, Any]]] = {
             m: {n: {} for n in MODULES[m].inputs} for m in (*LAUNCHED, "mission")}
@@ -112,13 +118,19 @@ class InProcessTransport:
                 if step > spec.last_step(self.cfg.steps) or spec.missing(step, buffers):
                     continue
                 out = logic.handle(step, spec.take(step, buffers))
-                self._timings += [StepTiming(step, stage, s, 0) for stage, s in out.stages.items()]
+                timings = [StepTiming(step, stage, s, 0) for stage, s in out.stages.items()]
+                self._timings += timings
                 for topic, value in out.messages:
                     self._deliver(topic, value)
+                if self.taps:
+                    for timing in timings:
+                        self.taps.put("timing", encode("timing", timing))
                 self._next[name] = step + 1
                 progress = True
 
     def _deliver(self, topic: str, value: Any) -> None:
+        if self.taps:
+            self.taps.put(topic, encode(topic, value))
         step, value = stamped(topic, value)
         for module, name, _ in consumers(topic):
             self._buffers[module][name][step] = value
@@ -142,6 +154,8 @@ class InProcessTransport:
         return []
 
     def finish(self, final: MissionStatus, failed: bool) -> None:
+        if self.taps:  # the process set's clock publishes the final status too
+            self.taps.put("status", encode("status", final))
         self._close()
 
     def _close(self) -> None:

@@ -377,6 +377,20 @@ class MissionConfig:
     fails (the loop resumes at the step where it stopped)."""
     progress: bool = True
     """Show a progress bar."""
+    record: bool = True
+    """Record every topic the modules publish into a rosbag2 bag with MCAP storage,
+    OUT/bag/ (ecosystem/recorder.py); `rovergate replay OUT/bag` publishes it again.
+    --no-record turns it off (a study's runs are not recorded unless it is given --record)."""
+    record_compression: Literal["none", "zstd"] = "none"
+    """Compression of the bag's MCAP chunks: none, or zstd (a quarter smaller; its writer
+    thread then takes a share of the CPU the loop needs: README, "Recording and replay")."""
+    viz: bool = False
+    """Serve the mission live to Foxglove (ecosystem/live_view.py): a Foxglove WebSocket
+    server on ws://VIZ_HOST:VIZ_PORT; docs/foxglove-layout.json arranges its panels."""
+    viz_host: str = "127.0.0.1"
+    """Address the live view listens on (0.0.0.0: other machines too; they may only watch)."""
+    viz_port: int = 8765
+    """Port of the live view (0: any free one; the log says which)."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     sensing: SensingConfig = field(default_factory=SensingConfig)
     rover: RoverConfig = field(default_factory=RoverConfig)
@@ -440,6 +454,9 @@ def check_values(cfg: MissionConfig) -> None:
     if not cfg.sensor.max_range_m > cfg.sensor.min_range_m:
         raise ConfigError(f"--sensor.max-range-m ({cfg.sensor.max_range_m}) must exceed "
                           f"--sensor.min-range-m ({cfg.sensor.min_range_m})")
+    if not 0 <= cfg.viz_port <= 65535:
+        raise ConfigError(f"--viz-port must be a TCP port (0 to 65535; 0: any free one), got "
+                          f"{cfg.viz_port}")
     if not 0 <= cfg.planner.beam_discount <= 1:
         raise ConfigError(f"--planner.beam-discount must be between 0 and 1, got "
                           f"{cfg.planner.beam_discount}")

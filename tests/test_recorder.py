@@ -1,0 +1,169 @@
+"""The flight recorder and replay (issue 17, part 1): every mission records every topic its
+modules publish into a rosbag2 MCAP bag that readers other than ours decode, and
+``rovergate replay`` publishes it again, byte for byte, over Zenoh."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from ecosystem.taps import tapped_topics
+from rovergate.config import SessionConfig
+from rovergate.graph import TOPICS
+from rovergate.keys import Keys
+from rovergate.session import free_loopback_port, zenoh_config
+from tests.conftest import ROVERGATE, Waiter, read_metrics, run_cli
+
+PLANNER = "/rover/map/occupancy/planner"
+
+
+def _mcap(bag: Path) -> Path:
+    (path,) = bag.glob("*.mcap")
+    return path
+
+
+def _decoded(bag: Path, topics: list[str]) -> dict[str, list]:
+    """Every message of ``topics``, decoded by the mcap package's ROS 2 decoder (written from
+    the message definitions in the file, not with our codec)."""
+    out: dict[str, list] = {t: [] for t in topics}
+    with open(_mcap(bag), "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, _, msg in reader.iter_decoded_messages(topics=topics):
+            assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
+            out[channel.topic].append(msg)
+    return out
+
+
+def _cloud(msg) -> dict[str, np.ndarray]:
+    """A PointCloud2's fields, read from its own layout (as any ROS 2 tool would)."""
+    kinds = {2: "u1", 4: "<u2", 7: "<f4"}
+    n = msg.width * msg.height
+    raw = np.frombuffer(bytes(msg.data), np.uint8).reshape(n, msg.point_step)
+    return {f.name: raw[:, f.offset:f.offset + np.dtype(kinds[f.datatype]).itemsize]
+            .copy().view(kinds[f.datatype])[:, 0] for f in msg.fields}
+
+
+@pytest.mark.e2e
+def test_a_process_set_mission_records_every_topic_into_an_mcap_bag(tmp_path: Path):
+    out = tmp_path / "run"
+    r = run_cli("run", "--steps", "10", "--out", str(out), "--seed", "3")
+    assert r.returncode == 0, r.stderr[-3000:]
+    bag = out / "bag"
+    assert (bag / "metadata.yaml").is_file()
+    keys = Keys("rover")
+    names = {t: "/" + keys.key(t) for t in tapped_topics()}
+    got = _decoded(bag, list(names.values()))
+    # A planner-facing map for every planning step, in order, decoded independently.
+    maps = got[PLANNER]
+    assert [m.header.stamp.sec for m in maps] == list(range(10))
+    last = _cloud(maps[-1])
+    assert set(last) == {"x", "y", "z", "source", "views", "channels"}
+    assert len(last["x"]) > 0 and set(np.unique(last["channels"])) <= {1, 2, 3}
+    # The last surface is the S_T the report scores.
+    metrics = read_metrics(out)
+    surfaces = got[names["surface"]]
+    assert [m.header.stamp.sec for m in surfaces] == list(range(11))
+    assert len(_cloud(surfaces[-1])["x"]) == metrics["observed_points"]
+    # Each path starts where the base was when it was planned (two topics, two publishers;
+    # the planner's z is its own terrain estimate).
+    bases = got[names["base_pose"]]
+    paths = got[names["path"]]
+    assert len(bases) == 11 and len(paths) == 10
+    for base, path in zip(bases, paths, strict=False):
+        p, q = base.pose.position, path.poses[0].pose.position
+        assert (p.x, p.y) == pytest.approx((q.x, q.y), abs=1e-6)
+    # Every topic is there, as many times as the report says it was written.
+    counts = {t: len(got[n]) for t, n in names.items()}
+    assert counts == metrics["recording"]["messages"]
+    assert counts["status"] == 12  # ticks 0..10 and the final `done`
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("recorded") / "run"
+    r = run_cli("run", "--in-process", "--steps", "3", "--out", str(out), "--platform",
+                "flyer", "--record-compression", "zstd")
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out
+
+
+def test_an_in_process_mission_records_what_the_process_set_would_send(recorded: Path):
+    metrics = read_metrics(recorded)
+    rec = metrics["recording"]
+    assert rec["compression"] == "zstd" and rec["file_bytes"] < rec["payload_bytes"]
+    got = _decoded(recorded / "bag", [PLANNER, "/rover/sensor/pose", "/rover/sensor/depth"])
+    assert [m.header.stamp.sec for m in got[PLANNER]] == [0, 1, 2]
+    pose = got["/rover/sensor/pose"][-1]
+    q = pose.pose.orientation
+    assert pose.header.frame_id == "map"
+    assert q.x**2 + q.y**2 + q.z**2 + q.w**2 == pytest.approx(1.0, abs=1e-6)
+    depth = got["/rover/sensor/depth"][0]
+    assert depth.encoding == "32FC1" and len(depth.data) == 4 * depth.width * depth.height
+
+
+def test_no_record_writes_no_bag(tmp_path: Path):
+    out = tmp_path / "run"
+    r = run_cli("run", "--in-process", "--steps", "1", "--out", str(out), "--no-record")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert not (out / "bag").exists() and read_metrics(out)["recording"] == {}
+
+
+def test_replay_publishes_the_bag_again_byte_for_byte(recorded: Path):
+    from rosbags.rosbag2 import Reader
+    with Reader(recorded / "bag") as reader:
+        expected = [(c.topic.lstrip("/"), c.msgtype, bytes(data))
+                    for c, _, data in reader.messages()]
+        span_s = (reader.end_time - reader.start_time) / 1e9
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    received: list[tuple[str, str, bytes]] = []
+    waiter = Waiter()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        received.append((str(sample.key_expr), str(sample.encoding),
+                         sample.payload.to_bytes()))
+        waiter.notify()
+
+    with zenoh.open(zenoh_config(SessionConfig(listen=(endpoint,)))) as session:
+        sub = session.declare_subscriber("replayed/**", on_sample)
+        speed = 0.5
+        proc = subprocess.run(
+            [*ROVERGATE, "replay", str(recorded / "bag"), "--speed", str(speed),
+             "--namespace", "replayed", "--listen", "--connect", endpoint,
+             "--wait-subscriber-s", "60"], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        waiter.wait_for(lambda: len(received) >= len(expected), 30, "replayed messages",
+                        lambda: f" ({len(received)} of {len(expected)})")
+        sub.undeclare()
+    assert len(received) == len(expected)
+    for (key, encoding, data), (topic, msgtype, want) in zip(received, expected, strict=True):
+        assert key == "replayed/" + topic.split("/", 1)[1]
+        assert encoding == f"application/cdr;{msgtype}"
+        assert data == want
+    # Paced: it took at least the recording's span over the speed.
+    m = re.search(r"replayed (\d+) messages .* of ([\d.]+) s of recording in ([\d.]+) s",
+                  proc.stderr)
+    assert m and int(m.group(1)) == len(expected), proc.stderr[-2000:]
+    wall = float(m.group(3))
+    assert wall >= span_s / speed * 0.95
+    assert {TOPICS[t].msgtype for t in tapped_topics()} == {m for _, m, _ in expected}
+
+
+def _replay(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([*ROVERGATE, "replay", *args], capture_output=True, text=True,
+                          timeout=60)
+
+
+def test_replay_refuses_what_is_not_a_closed_bag(tmp_path: Path):
+    r = _replay(str(tmp_path / "nothing"))
+    assert r.returncode == 2 and "is not a bag directory" in r.stderr
+    (tmp_path / "open").mkdir()
+    (tmp_path / "open" / "open.mcap").write_bytes(b"\x89MCAP0\r\n")
+    r = _replay(str(tmp_path / "open"))
+    assert r.returncode == 2 and "no metadata.yaml" in r.stderr
