@@ -19,7 +19,9 @@ MCAP's streaming readers still read its finished chunks. A resumed mission recor
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import queue
 import shutil
 import threading
@@ -114,6 +116,10 @@ class FlightRecorder:
             self._queue.put((topic, payload, time_ns))
 
     def _drain(self) -> None:
+        # The lowest priority for this thread alone (Linux: a thread id is a process id to
+        # setpriority): the recorder takes the CPU the loop leaves idle, not the loop's.
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         while (item := self._queue.get()) is not None:
             if self._error is not None:
                 continue  # failed: keep draining so that nothing waits on us

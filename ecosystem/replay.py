@@ -51,6 +51,12 @@ class ReplayConfig:
     """Address the live view listens on."""
     viz_port: int = 8765
     """Port of the live view (0: any free one; the log says which)."""
+    ros2: bool = False
+    """Publish the replay into the ROS 2 graph too (as `rovergate run --ros2`)."""
+    ros2_router: str = "tcp/localhost:7447"
+    """The ROS 2 Zenoh router (rmw_zenohd) to join."""
+    ros2_domain: int = 0
+    """The ROS domain id to publish in."""
     session: tyro.conf.OmitArgPrefixes[SessionConfig] = field(
         default_factory=lambda: SessionConfig(listen=("tcp/127.0.0.1:7447",), namespace=""))
     """Where subscribers reach the replay: it listens on tcp/127.0.0.1:7447 unless told
@@ -198,12 +204,18 @@ def live_view(cfg: ReplayConfig):
             scene = load_scene(mission.scene)
         except Exception as exc:  # the view goes on without the mesh
             log.warning("no scene mesh in the live view: %s does not load (%s)", saved, exc)
-    namespace = cfg.session.namespace
-    if not namespace:
-        reader = open_bag(cfg.bag)
-        namespace = _recorded_namespace(reader.connections)
+    return LiveView(cfg.viz_host, cfg.viz_port, _bag_namespace(cfg), scene)
+
+
+def _bag_namespace(cfg: ReplayConfig) -> str:
+    """The namespace the replay publishes under: --namespace, else the recorded one."""
+    if cfg.session.namespace:
+        return cfg.session.namespace
+    reader = open_bag(cfg.bag)
+    try:
+        return _recorded_namespace(reader.connections)
+    finally:
         reader.close()
-    return LiveView(cfg.viz_host, cfg.viz_port, namespace, scene)
 
 
 def main(cfg: ReplayConfig) -> int:
@@ -212,6 +224,10 @@ def main(cfg: ReplayConfig) -> int:
     init_logging("replay")
     taps = Taps([live_view(cfg)] if cfg.viz else [])
     try:
+        if cfg.ros2:
+            from ecosystem.ros2 import Ros2Bridge
+            taps.taps.append(Ros2Bridge(cfg.ros2_router, cfg.ros2_domain,
+                                        _bag_namespace(cfg)))
         replay(cfg, taps)
     finally:
         taps.close()

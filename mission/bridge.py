@@ -361,8 +361,12 @@ class GroundBridge:
 
     @property
     def settled(self) -> bool:
-        """Nothing left to send, nothing on its way, every item acknowledged."""
-        return len(self.queue) == 0 and not self._to_ground and not self._to_rover
+        """Nothing left to send, nothing on its way either way (a command the ground sent
+        included), every item acknowledged."""
+        with self._lock:
+            heard = bool(self._heard)
+        return (len(self.queue) == 0 and not self._to_ground and not self._to_rover
+                and not self._held and not heard)
 
     def close(self) -> None:
         # The file goes first: whoever reads it from now on is told the mission has ended.

@@ -66,6 +66,17 @@ def _aliases(args: list[str]) -> list[str]:
 
 
 def _run(args: list[str]) -> int:
+    """``rovergate run [MISSION.toml] [flags]``: a mission file first, flags over it."""
+    if args and not args[0].startswith("-"):
+        import dataclasses
+
+        from mission.script import load_script, run_script
+        script = load_script(Path(args[0]))
+        if "--config" in args:
+            raise ConfigError("give a mission file or --config FILE, not both")
+        cfg = tyro.cli(MissionConfig, args=_aliases(args[1:]), default=script.config,
+                       prog="rovergate run MISSION.toml", description=COMMANDS["run"].help)
+        return run_script(dataclasses.replace(script, config=cfg))
     from mission.run import main
     return main(_mission_config("run", args))
 
@@ -156,7 +167,8 @@ def _ground():
 
 COMMANDS: dict[str, Command] = {
     "run": Command("run a mission (the process set over Zenoh, or --in-process) and write "
-                   "its report", _run),
+                   "its report; `run MISSION.toml` runs a mission file and its timeline",
+                   _run),
     **{name: Command(f"start the {name} module alone (as `rovergate run` does)", _module(name))
        for name in LAUNCHED},
     "scenes": Command("list the scenes with their sizes and starts (--render DIR: a picture "

@@ -33,6 +33,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -215,6 +216,8 @@ class GroundStation:
                 self.next_id = max(self.next_id, int(json.loads(line)["id"]) + 1)
         self.duplicates = 0
         self.dropped = 0
+        self.on_status: Callable[[int], None] | None = None
+        """Called with the step of every downlinked status (a mission script's timeline)."""
         self._lock = threading.Lock()
         self._file = open(self.received_path, "a")  # noqa: SIM115 -- closed in close()
         self._sent = open(sent_path, "a")  # noqa: SIM115 -- closed in close()
@@ -269,6 +272,8 @@ class GroundStation:
             if isinstance(value, MissionStatus):
                 row.update(state=value.state, coverage=value.coverage,
                            collisions=value.collisions, condition=value.condition)
+                if self.on_status is not None:
+                    self.on_status(value.step)
             elif isinstance(value, Pose):
                 row.update(position=[float(v) for v in value.position], yaw=value.yaw)
             elif isinstance(value, MissionEvent):

@@ -181,8 +181,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
 
 def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False) -> tuple[Taps, Any]:
     """The taps of a mission (:mod:`ecosystem.taps`): the flight recorder unless
-    ``--no-record``, the live view with ``--viz``. Returns the taps and the recorder (None
-    when not recording)."""
+    ``--no-record``, the live view with ``--viz``, the ROS 2 graph with ``--ros2``. Returns
+    the taps and the recorder (None when not recording)."""
     from ecosystem.taps import Taps
     taps = Taps([])
     recorder = None
@@ -197,6 +197,10 @@ def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False) -> tuple[Ta
             from rover_sim.catalog import load_scene
             taps.taps.append(LiveView(cfg.viz_host, cfg.viz_port, cfg.session.namespace,
                                       load_scene(cfg.scene)))
+        if cfg.ros2:
+            from ecosystem.ros2 import Ros2Bridge
+            taps.taps.append(Ros2Bridge(cfg.ros2_router, cfg.ros2_domain,
+                                        cfg.session.namespace))
     except BaseException:
         taps.close()
         raise
@@ -220,10 +224,12 @@ def run_in_process(cfg: MissionConfig, on_step: OnStep | None = None) -> Mission
 
 
 def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
-                  resume: LoopState | None = None) -> MissionRecord:
+                  resume: LoopState | None = None,
+                  on_link: Callable[[], None] | None = None) -> MissionRecord:
     """The mission as a process set over Zenoh, with the ground link when it is enabled. Its
     state is checkpointed in ``cfg.out`` after every step (removed when the mission ends,
-    kept when it fails or its manager is killed); ``resume`` carries on from such a state."""
+    kept when it fails or its manager is killed); ``resume`` carries on from such a state.
+    ``on_link`` is called once the ground link's endpoint is up."""
     from mission.operations import Operations
     from mission.process_set import ProcessSetTransport
     out = Path(cfg.out)
@@ -231,8 +237,14 @@ def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
     try:
         transport = ProcessSetTransport(cfg, out, {**resume.transport, "step": resume.step}
                                         if resume else None, taps)
-        factory = (lambda: Operations(transport)) if cfg.contact.enabled else None
-        record = run_mission(cfg, transport, on_step, factory, checkpoint=out, resume=resume)
+        def factory() -> Operations:
+            ops = Operations(transport)
+            if on_link is not None:
+                on_link()
+            return ops
+        record = run_mission(cfg, transport, on_step,
+                             factory if cfg.contact.enabled else None, checkpoint=out,
+                             resume=resume)
     finally:
         taps.close()
     record.recording = _recording(recorder)

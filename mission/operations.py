@@ -317,7 +317,7 @@ class Operations:
                 idle < self.cfg.contact.drain_steps and not STOP.is_set():
             if self.bridge.plan.next_open(self.bridge.clock) is None:
                 self.bridge.plan.hold_open(self.bridge.clock)  # no window left: stay up
-            self.bridge.tick()
+            self._too_late(status, self.bridge.tick())
             idle += 1
             time.sleep(self.cfg.contact.idle_step_wall_s)
         left = len(self.bridge.queue)
@@ -331,6 +331,24 @@ class Operations:
                 "undelivered": left, "dropped_telemetry": self.bridge.queue.dropped,
                 "dropped_ground_messages": self.bridge.dropped,
                 "commands": self.commands, "reconfigurations": self.reconfigurations}
+
+    def _too_late(self, status: MissionStatus, delivered: list[Delivered]) -> None:
+        """Commands that reach the rover after its last step are acknowledged as rejected
+        (the ground learns that they did not run), never dropped unanswered."""
+        for d in delivered:
+            c = d.command
+            if c.id in self._executed:
+                continue
+            self._executed.add(c.id)
+            detail = f"the mission had ended ({status.state} at step {status.step})"
+            log.info("ground command %d (%s %s) rejected after the mission: %s", c.id, c.verb,
+                     " ".join(c.args), detail)
+            self.commands.append({"id": c.id, "verb": c.verb, "args": list(c.args),
+                                  "state": "rejected", "step": status.step,
+                                  "received_s": d.received_s,
+                                  "link_step": self.bridge.clock - 1, "detail": detail})
+            self.bridge.command_ack(CommandAck(c.id, c.verb, "rejected", status.step,
+                                               d.received_s, detail))
 
     # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
 

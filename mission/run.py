@@ -8,6 +8,7 @@ import json
 import logging
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO
 
@@ -117,8 +118,10 @@ def hold_directory(out: Path) -> IO[str]:
     return f
 
 
-def main(cfg: MissionConfig) -> int:
-    """Run one mission as configured and write its report under ``cfg.out``."""
+def main(cfg: MissionConfig, on_link: Callable[[], None] | None = None) -> int:
+    """Run one mission as configured and write its report under ``cfg.out``. ``on_link``
+    (process set, with the ground link) is called once the link's endpoint is up and
+    ``OUT/ground.json`` names it (a mission script starts its ground station there)."""
     log = init_logging("mission")
     lock = hold_directory(Path(cfg.out))  # noqa: F841 -- held until the process ends
     state = None
@@ -143,7 +146,7 @@ def main(cfg: MissionConfig) -> int:
 
     try:
         record = (run_in_process(cfg, on_step) if cfg.in_process
-                  else run_processes(cfg, on_step, state))
+                  else run_processes(cfg, on_step, state, on_link))
     except MissionFailed as exc:
         bar.close()
         log.error("mission failed: %s", exc)

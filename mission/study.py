@@ -128,6 +128,8 @@ OWNED_MISSION_FLAGS: dict[str, str] = {
     "record": "use --record (the study's runs are not recorded unless it is given)",
     "viz": "a study's runs are not served live; record them (--record) and watch one with "
            "`rovergate replay OUT/runs/<id>/bag --viz`",
+    "ros2": "a study's runs are not published live; record them (--record) and publish one "
+            "with `rovergate replay OUT/runs/<id>/bag --ros2`",
 }
 """The --mission flags (after ``--mission.``) of what :func:`mission_config` sets for every
 run, and what to do instead; ``{value}`` is the value given (VALUE if none)."""
@@ -324,7 +326,7 @@ def mission_config(cfg: StudyConfig, spec: RunSpec, run_dir: Path) -> MissionCon
     m.start, m.condition, m.seed, m.steps = spec.start, spec.condition, spec.rep, cfg.steps
     m.platform, m.out, m.in_process, m.progress = (spec.platform or _names(cfg.platform)[0],
                                                    run_dir, True, False)
-    m.record, m.viz = cfg.record, False
+    m.record, m.viz, m.ros2 = cfg.record, False, False
     if spec.profile:
         m.sensing = replace(m.sensing, **SENSING_PROFILES[spec.profile])
     return m

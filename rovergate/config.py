@@ -391,6 +391,14 @@ class MissionConfig:
     """Address the live view listens on (0.0.0.0: other machines too; they may only watch)."""
     viz_port: int = 8765
     """Port of the live view (0: any free one; the log says which)."""
+    ros2: bool = False
+    """Publish the topics into the ROS 2 graph as rmw_zenoh nodes do (ecosystem/ros2.py), via
+    the ROS 2 Zenoh router at --ros2-router: `ros2 topic echo /rover/map/occupancy/planner`
+    then prints the map. Nothing comes back from ROS 2 this way."""
+    ros2_router: str = "tcp/localhost:7447"
+    """The ROS 2 Zenoh router (rmw_zenohd) to join."""
+    ros2_domain: int = 0
+    """The ROS domain id (ROS_DOMAIN_ID) to publish in."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     sensing: SensingConfig = field(default_factory=SensingConfig)
     rover: RoverConfig = field(default_factory=RoverConfig)
@@ -457,6 +465,9 @@ def check_values(cfg: MissionConfig) -> None:
     if not 0 <= cfg.viz_port <= 65535:
         raise ConfigError(f"--viz-port must be a TCP port (0 to 65535; 0: any free one), got "
                           f"{cfg.viz_port}")
+    if not 0 <= cfg.ros2_domain <= 232:
+        raise ConfigError(f"--ros2-domain must be a ROS domain id (0 to 232), got "
+                          f"{cfg.ros2_domain}")
     if not 0 <= cfg.planner.beam_discount <= 1:
         raise ConfigError(f"--planner.beam-discount must be between 0 and 1, got "
                           f"{cfg.planner.beam_discount}")

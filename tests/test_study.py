@@ -252,7 +252,7 @@ def test_the_refused_flags_are_exactly_what_the_study_sets():
                                           bounds_m=(1, 2, 3, 4, 5, 6)),
                         platform="other", start="q", steps=999, seed=99, condition="truth",
                         out=Path("elsewhere"), in_process=False, progress=True, record=True,
-                        viz=True)
+                        viz=True, ros2=True)
     made = mission_config(StudyConfig(mission=own), RunSpec("crater", "b", "obs", 0),
                           Path("runs/x"))
 

@@ -1,0 +1,174 @@
+"""The ROS 2 graph over rmw_zenoh: the mission's topics as ROS 2 Jazzy (and later) nodes that
+run ``rmw_zenoh_cpp`` see them, without a ROS installation here.
+
+``rovergate run --ros2`` (and ``rovergate replay --ros2``) joins the ROS 2 Zenoh router
+(``rmw_zenohd``, by default on ``tcp/localhost:7447``, ``--ros2-router``) as a Zenoh client and
+publishes every topic of the rover's network as rmw_zenoh does (its ``docs/design.md``, the
+version with the 33-byte attachment: Jazzy 0.2.4 and later, Rolling 0.6 and later):
+
+- **data keys** ``<domain>/<topic without its leading slash>/<type in DDS form>/<RIHS01
+  hash>``, e.g. ``0/rover/map/occupancy/planner/sensor_msgs::msg::dds_::PointCloud2_/
+  RIHS01_9198…``; the hash is the type description hash rosbags computes from the message
+  definition (``std_msgs/msg/String`` gives the design document's
+  ``RIHS01_df668c74…``);
+- **payloads**: the CDR bytes as the mission sent them (the same 4-byte encapsulation header
+  rmw_zenoh writes);
+- **an attachment on every sample**: int64 sequence number (from 1, per publisher), int64 source
+  timestamp (ns since the epoch), the GID's length (one byte, 16) and the 16-byte publisher
+  GID, little-endian: 33 bytes;
+- **liveliness tokens** for one node, ``/<namespace>/rovergate_bridge``, and one publisher per
+  topic: ``@ros2_lv/<domain>/<session zid>/<node id>/<entity id>/<NN|MP>/<enclave>/
+  <namespace>/<node>[/<topic>/<type>/<hash>/<qos>]``, ``/`` written ``%``; QoS reliable,
+  volatile, keep last 10 (``::,10:,:,:,,``), so ``ros2 topic list`` shows the topics and
+  ``ros2 topic echo /rover/map/occupancy/planner`` prints the map.
+
+The other way is closed: the bridge declares no subscriber, queryable or token a ROS 2 node
+could reach the mission through. A ROS 2 node's command (a ``nav_msgs/msg/Path`` from a ROS 2
+planner) does not reach the rover by this path at all; commands go up only through the ground
+link's authenticated, allowlisted uplink (``rovergate ground``; README, *Security*).
+
+A publisher's GID is the first 16 bytes of the BLAKE2b hash of its liveliness token (rmw_zenoh
+takes XXH3-128 of the same string): stable for a token, distinct between publishers.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import struct
+import threading
+import time
+
+from ecosystem.taps import tapped_topics
+from rovergate.errors import ConfigError
+from rovergate.graph import TOPICS
+from rovergate.keys import Keys
+from rovergate.messages import TYPESTORE
+
+log = logging.getLogger("rovergate.ros2")
+
+DEFAULT_ROUTER = "tcp/localhost:7447"
+NODE_NAME = "rovergate_bridge"
+#: rmw_zenoh's QoS in a token, each field left empty where it is rmw_zenoh's default
+#: (reliable, volatile, keep last; depth 10 given): what rclcpp's QoS(10) publisher shows.
+QOS_KEEP_LAST_10 = "::,10:,:,:,,"
+GID_BYTES = 16
+
+
+def dds_type(msgtype: str) -> str:
+    """``sensor_msgs/msg/PointCloud2`` -> ``sensor_msgs::msg::dds_::PointCloud2_``."""
+    package, kind, name = msgtype.split("/")
+    return f"{package}::{kind}::dds_::{name}_"
+
+
+def type_hash(msgtype: str) -> str:
+    """The RIHS01 type description hash (``RIHS01_`` and 64 hex digits)."""
+    return TYPESTORE.hash_rihs01(msgtype)
+
+
+def data_key(domain: int, topic: str, msgtype: str) -> str:
+    """The key rmw_zenoh publishes a topic's samples on."""
+    return f"{domain}/{topic.strip('/')}/{dds_type(msgtype)}/{type_hash(msgtype)}"
+
+
+def mangle(name: str) -> str:
+    """A name in a liveliness token: every ``/`` as ``%`` (an empty name or ``/`` is ``%``)."""
+    return name.replace("/", "%") if name else "%"
+
+
+def node_token(domain: int, zid: str, node_id: int, namespace: str, node: str,
+               enclave: str = "/") -> str:
+    return (f"@ros2_lv/{domain}/{zid}/{node_id}/{node_id}/NN/{mangle(enclave)}/"
+            f"{mangle(namespace)}/{node}")
+
+
+def publisher_token(domain: int, zid: str, node_id: int, entity_id: int, namespace: str,
+                    node: str, topic: str, msgtype: str, qos: str = QOS_KEEP_LAST_10,
+                    enclave: str = "/") -> str:
+    return (f"@ros2_lv/{domain}/{zid}/{node_id}/{entity_id}/MP/{mangle(enclave)}/"
+            f"{mangle(namespace)}/{node}/{mangle(topic)}/{dds_type(msgtype)}/"
+            f"{type_hash(msgtype)}/{qos}")
+
+
+def attachment(sequence: int, timestamp_ns: int, gid: bytes) -> bytes:
+    """The 33 bytes every rmw_zenoh sample carries (module docstring)."""
+    if len(gid) != GID_BYTES:
+        raise ValueError(f"a publisher GID has {GID_BYTES} bytes, got {len(gid)}")
+    return struct.pack("<qqB", sequence, timestamp_ns, GID_BYTES) + gid
+
+
+def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
+    """(sequence number, source timestamp ns, GID) of an attachment; ValueError if it is not
+    one."""
+    if len(data) != 8 + 8 + 1 + GID_BYTES or data[16] != GID_BYTES:
+        raise ValueError(f"not an rmw_zenoh attachment ({len(data)} bytes)")
+    seq, ts = struct.unpack_from("<qq", data)
+    return seq, ts, bytes(data[17:])
+
+
+def gid_of(token: str) -> bytes:
+    return hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest()
+
+
+class Ros2Bridge:
+    """A :class:`ecosystem.taps.Tap` that publishes the mission into the ROS 2 graph."""
+
+    def __init__(self, router: str = DEFAULT_ROUTER, domain: int = 0,
+                 namespace: str = "rover", timeout_s: float = 10.0) -> None:
+        import zenoh
+        if not 0 <= domain <= 232:
+            raise ConfigError(f"--ros2-domain must be a ROS domain id (0 to 232), got {domain}")
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps([router]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/timeout_ms", str(int(timeout_s * 1000)))
+        # rmw_zenoh's sessions stamp their samples (its publication caches need it).
+        conf.insert_json5("timestamping/enabled", '{"router": true, "peer": true, "client": true}')
+        try:
+            self.session = zenoh.open(conf)
+        except Exception as exc:
+            raise ConfigError(f"--ros2: no ROS 2 Zenoh router at {router} ({exc}); start one "
+                              "(`ros2 run rmw_zenoh_cpp rmw_zenohd`) or give its endpoint with "
+                              "--ros2-router") from None
+        self.domain = domain
+        self.zid = str(self.session.info.zid())
+        self.node_namespace = f"/{namespace}"
+        keys = Keys(namespace)
+        liveliness = self.session.liveliness()
+        self._tokens = [liveliness.declare_token(
+            node_token(domain, self.zid, 0, self.node_namespace, NODE_NAME))]
+        self._publishers: dict[str, tuple[zenoh.Publisher, bytes]] = {}
+        self._sequence: dict[str, int] = {}
+        self._lock = threading.Lock()
+        for entity, topic in enumerate(tapped_topics(), start=1):
+            name, msgtype = "/" + keys.key(topic), TOPICS[topic].msgtype
+            token = publisher_token(domain, self.zid, 0, entity, self.node_namespace,
+                                    NODE_NAME, name, msgtype)
+            self._publishers[topic] = (
+                self.session.declare_publisher(
+                    data_key(domain, name, msgtype),
+                    congestion_control=zenoh.CongestionControl.BLOCK),
+                gid_of(token))
+            self._sequence[topic] = 0
+            self._tokens.append(liveliness.declare_token(token))
+        log.info("ROS 2 graph: node %s/%s on domain %d via the router at %s (%d topics)",
+                 self.node_namespace, NODE_NAME, domain, router, len(self._publishers))
+
+    def put(self, topic: str, payload: bytes, time_ns: int) -> None:
+        entry = self._publishers.get(topic)
+        if entry is None:
+            return
+        publisher, gid = entry
+        with self._lock:  # numbered and sent in one order
+            self._sequence[topic] += 1
+            publisher.put(payload, attachment=attachment(self._sequence[topic], time.time_ns(),
+                                                         gid))
+
+    def close(self) -> None:
+        for token in self._tokens:
+            token.undeclare()
+        for publisher, _ in self._publishers.values():
+            publisher.undeclare()
+        self.session.close()

@@ -1,0 +1,128 @@
+"""The ROS 2 graph over rmw_zenoh (issue 17, part 3), without a ROS installation: keys,
+attachments and liveliness tokens against rmw_zenoh's design document (docs/design.md, the
+version with the 33-byte attachment), and a subscriber written from that document alone that
+receives the planner map from a running mission through a Zenoh router."""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.typesys import Stores, get_typestore
+
+from ecosystem import ros2
+from rovergate.session import free_loopback_port
+from tests.conftest import Waiter
+
+STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+
+
+def test_data_keys_are_the_design_documents():
+    # design.md, "Topic and service name mapping to Zenoh key expressions".
+    assert ros2.type_hash("std_msgs/msg/String") == STRING_HASH
+    assert ros2.data_key(0, "/chatter", "std_msgs/msg/String") == \
+        f"0/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
+    assert ros2.data_key(0, "/robot1/chatter", "std_msgs/msg/String") == \
+        f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
+    assert ros2.dds_type("sensor_msgs/msg/PointCloud2") == \
+        "sensor_msgs::msg::dds_::PointCloud2_"
+
+
+def test_liveliness_tokens_are_the_design_documents():
+    # design.md, "Graph cache": its node and publisher examples, to the character.
+    assert ros2.node_token(2, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "/", "listener") == \
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    assert ros2.publisher_token(2, "8b20917502ee955ac4476e0266340d5c", 0, 10, "/", "talker",
+                                "/chatter", "std_msgs/msg/String", qos="::,7:,:,:,,") == (
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+        f"std_msgs::msg::dds_::String_/{STRING_HASH}/::,7:,:,:,,")
+    assert ros2.mangle("/rover/map/occupancy/planner") == "%rover%map%occupancy%planner"
+
+
+def test_the_attachment_is_33_bytes_in_the_documents_order():
+    gid = bytes(range(0x10, 0x20))
+    data = ros2.attachment(1, 1_700_000_000_123_456_789, gid)
+    assert data.hex(" ") == ("01 00 00 00 00 00 00 00 15 cd 85 3d fe 9c 97 17 10 "
+                             "10 11 12 13 14 15 16 17 18 19 1a 1b 1c 1d 1e 1f")
+    assert ros2.parse_attachment(data) == (1, 1_700_000_000_123_456_789, gid)
+    with pytest.raises(ValueError):
+        ros2.attachment(1, 0, b"short")
+
+
+def _ros_decoder(msgtype: str):
+    """A CDR decoder built from the type's ROS 2 definition (mcap-ros2-support; the text
+    from rosbags' own Jazzy-era store, not from rovergate)."""
+    text, _ = get_typestore(Stores.ROS2_HUMBLE).generate_msgdef(msgtype, ros_version=2)
+    return DecoderFactory().decoder_for("cdr", Schema(id=1, name=msgtype, encoding="ros2msg",
+                                                      data=text.encode()))
+
+
+@pytest.mark.e2e
+def test_a_ros2_subscriber_receives_the_planner_map_through_a_router(launch, tmp_path: Path):
+    port = free_loopback_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router_conf = zenoh.Config()
+    router_conf.insert_json5("mode", '"router"')
+    router_conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    router_conf.insert_json5("scouting/multicast/enabled", "false")
+    client_conf = zenoh.Config()
+    client_conf.insert_json5("mode", '"client"')
+    client_conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    client_conf.insert_json5("scouting/multicast/enabled", "false")
+    samples: list[tuple[str, bytes, bytes | None]] = []
+    waiter = Waiter()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+        with waiter.cv:
+            samples.append((str(sample.key_expr), sample.payload.to_bytes(), attachment))
+            waiter.cv.notify_all()
+
+    with zenoh.open(router_conf), zenoh.open(client_conf) as ros:
+        sub = ros.declare_subscriber("0/rover/map/occupancy/planner/**", on_sample)
+        mission = launch("run", "--ros2", "--ros2-router", endpoint, "--steps", "300",
+                         "--platform", "flyer", "--out", str(tmp_path / "run"))
+        waiter.wait_for(lambda: len(samples) >= 3, 180, "three planner maps on the ROS 2 key",
+                        lambda: "; mission stderr:\n" + "".join(mission.lines[-20:]))
+        tokens = [str(r.ok.key_expr) for r in ros.liveliness().get("@ros2_lv/0/**",
+                                                                   timeout=10) if r.ok]
+        mission.kill()
+        sub.undeclare()
+    key, payload, attachment = samples[0]
+    assert key == ("0/rover/map/occupancy/planner/sensor_msgs::msg::dds_::PointCloud2_/"
+                   + ros2.type_hash("sensor_msgs/msg/PointCloud2"))
+    # The attachment: sequence numbers from 1, one publisher GID, 33 bytes each.
+    parsed = [struct.unpack_from("<qqB", a) + (a[17:],) for _, _, a in samples[:3]]
+    assert all(len(a) == 33 for _, _, a in samples[:3])
+    assert [p[0] for p in parsed] == [1, 2, 3]
+    assert {p[2] for p in parsed} == {16} and len({p[3] for p in parsed}) == 1
+    cloud = _ros_decoder("sensor_msgs/msg/PointCloud2")(payload)
+    assert [f.name for f in cloud.fields] == ["x", "y", "z", "source", "views", "channels"]
+    n = cloud.width * cloud.height
+    assert n > 0 and len(cloud.data) == n * cloud.point_step
+    xyz = np.frombuffer(bytes(cloud.data), np.uint8).reshape(n, cloud.point_step)[:, :12]
+    assert np.isfinite(xyz.copy().view("<f4")).all()
+    # The graph: the bridge's node and a publisher of the topic, as `ros2 topic list` reads it.
+    nodes = [t for t in tokens if t.split("/")[5] == "NN"]
+    publishers = [t for t in tokens if t.split("/")[5] == "MP"
+                  and t.split("/")[9] == "%rover%map%occupancy%planner"]
+    assert [t.split("/")[7:9] for t in nodes] == [["%rover", "rovergate_bridge"]]
+    assert len(publishers) == 1
+    assert publishers[0].split("/")[10:] == [
+        "sensor_msgs::msg::dds_::PointCloud2_",
+        ros2.type_hash("sensor_msgs/msg/PointCloud2"), ros2.QOS_KEEP_LAST_10]
+
+
+@pytest.mark.e2e
+def test_without_a_router_the_mission_does_not_start(tmp_path: Path):
+    from tests.conftest import run_cli
+    port = free_loopback_port()  # nothing listens there
+    r = run_cli("run", "--in-process", "--steps", "1", "--out", str(tmp_path / "run"),
+                "--ros2", "--ros2-router", f"tcp/127.0.0.1:{port}", timeout=120)
+    assert r.returncode == 2 and "no ROS 2 Zenoh router" in r.stderr, r.stderr[-2000:]
