@@ -177,7 +177,7 @@ def _expected(hint: Any):
     if hint is str or hint is Path:
         return (lambda v: isinstance(v, str)), "a string"
     if hint == Path | None:
-        return (lambda v: isinstance(v, str)), "a string (a path)"
+        return (lambda v: v is None or isinstance(v, str)), "a string (a path)"
     if origin is tuple:
         return (lambda v: isinstance(v, list)), "an array"
     if origin is typing.Literal:

@@ -89,6 +89,11 @@ class StudyConfig:
     wins over the preset's. In Python, build it with :func:`preset_config`."""
     workers: int = 0
     """Worker processes (0: one per CPU core). Each runs one mission at a time."""
+    cluster: str = ""
+    """Run on a Dask distributed cluster instead of local workers: the scheduler's address,
+    e.g. tcp://10.0.0.5:8786 (`dask scheduler` prints it; start `dask worker ADDRESS
+    --nthreads 1` on each machine, with rovergate installed). Same runs, same runs.csv, same
+    resumption; see mission/cluster.py and the README."""
     torch_threads: int = 1
     """Torch threads per worker."""
     out: Path = Path("runs/study")
@@ -374,7 +379,8 @@ def _run_one(job: tuple[dict, str, str]) -> tuple[str, float, str | None]:
 def _settings(cfg: StudyConfig) -> dict:
     """What must match for a study directory to be resumed."""
     d = to_dict(cfg)
-    for k in ("workers", "torch_threads", "out", "bootstrap", "progress", "preset", "record"):
+    for k in ("workers", "torch_threads", "out", "bootstrap", "progress", "preset", "record",
+              "cluster"):
         d.pop(k)
     d["mission"] = _without_recording(d["mission"])
     # A study of one platform, nominal, saves its settings as studies did before cells.
@@ -397,12 +403,26 @@ def _normalised(saved: dict | None) -> dict | None:
     return {**saved, "mission": _without_recording(mission)}
 
 
-#: Mission settings that change what is written beside a run, never its figures.
-_RECORDING = ("record", "record_compression")
+#: Mission settings that change what is written or served beside a run, never its figures.
+_OUTPUTS = ("record", "record_compression", "viz", "viz_host", "viz_port", "ros2",
+            "ros2_router", "ros2_domain")
 
 
 def _without_recording(mission: dict) -> dict:
-    return {k: v for k, v in mission.items() if k not in _RECORDING}
+    return {k: v for k, v in mission.items() if k not in _OUTPUTS}
+
+
+def _results(cfg: StudyConfig, jobs: list, runs_dir: Path):
+    """(run id, seconds, error) of every job as it finishes: from a local pool of
+    ``cfg.workers`` processes, or from the Dask cluster at ``cfg.cluster``."""
+    if cfg.cluster:
+        from mission.cluster import cluster_results
+        yield from cluster_results(cfg.cluster, jobs, cfg.torch_threads, runs_dir)
+        return
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(cfg.workers, initializer=_init_worker,
+                  initargs=(cfg.torch_threads,)) as pool:
+        yield from pool.imap_unordered(_run_one, jobs)
 
 
 def _terminate(signum, frame) -> None:
@@ -436,11 +456,13 @@ def main(cfg: StudyConfig) -> int:
     specs = run_specs(cfg)
     done = {p.name for p in runs_dir.iterdir() if (p / "metrics.json").exists()}
     todo = [s for s in specs if s.id not in done]
-    log.info("%d runs: %d finished before, %d to run on %d workers (out: %s)", len(specs),
-             len(specs) - len(todo), len(todo), cfg.workers, out)
+    log.info("%d runs: %d finished before, %d to run on %s (out: %s)", len(specs),
+             len(specs) - len(todo), len(todo),
+             f"the Dask cluster at {cfg.cluster}" if cfg.cluster else f"{cfg.workers} workers",
+             out)
     t0 = time.perf_counter()
     session = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "runs": 0, "wall_s": 0.0,
-               "workers": cfg.workers}
+               "workers": cfg.workers, **({"cluster": cfg.cluster} if cfg.cluster else {})}
     sessions.append(session)
 
     def save_progress() -> None:
@@ -458,20 +480,17 @@ def main(cfg: StudyConfig) -> int:
                 for s in todo]
         bar = tqdm(total=len(specs), initial=len(specs) - len(todo), desc="study", unit="run",
                    disable=not cfg.progress, file=sys.stderr, smoothing=0.05)
-        ctx = mp.get_context("spawn")
         try:
-            with ctx.Pool(cfg.workers, initializer=_init_worker,
-                          initargs=(cfg.torch_threads,)) as pool:
-                for run_id, seconds, error in pool.imap_unordered(_run_one, jobs):
-                    bar.update(1)
-                    if error:
-                        failures.append((run_id, error))
-                        log.error("run %s failed after %.0f s: %s", run_id, seconds, error)
-                    else:
-                        session["runs"] += 1
-                        bar.set_postfix_str(f"{run_id} {seconds:.0f}s")
-                        log.info("run %s finished in %.0f s", run_id, seconds)
-                    save_progress()
+            for run_id, seconds, error in _results(cfg, jobs, runs_dir):
+                bar.update(1)
+                if error:
+                    failures.append((run_id, error))
+                    log.error("run %s failed after %.0f s: %s", run_id, seconds, error)
+                else:
+                    session["runs"] += 1
+                    bar.set_postfix_str(f"{run_id} {seconds:.0f}s")
+                    log.info("run %s finished in %.0f s", run_id, seconds)
+                save_progress()
         except KeyboardInterrupt:
             bar.close()
             save_progress()

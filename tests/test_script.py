@@ -1,0 +1,109 @@
+"""Mission scripts (issue 17, part 4): a TOML mission file with an operations timeline that a
+ground station plays through the mission's authenticated uplink, and the Python API
+(``from rovergate import Mission``) that the examples use."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mission.script import Mission, load_script, parse_script
+from rovergate.errors import ConfigError
+from tests.conftest import read_metrics, run_cli
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "mission.toml"
+
+
+def test_the_example_mission_file_reads_as_its_settings_and_timeline():
+    script = load_script(EXAMPLE)
+    assert script.config.platform == "rover" and script.config.scene.name == "arch_field"
+    assert script.config.contact.period_steps == 6
+    assert [(e.step, e.window, e.command) for e in script.timeline] == [
+        (1, None, "set planner.n_candidates=24"), (None, 2, "condition gated")]
+
+
+@pytest.mark.parametrize("text, names", [
+    ("stepz = 3", "unknown key 'stepz'"),
+    ("steps = 'ten'", "`steps` must be an integer"),
+    ("[planner]\nname = 3", "`planner.name` must be a string"),
+    ("planner = 'beam'", "`planner` is a section"),
+    ("condition = 3", "`condition` must be a string"),
+    ("record_compression = 'lz4'", "`record_compression` must be one of 'none', 'zstd'"),
+    ("[[timeline]]\nstep = 2\ncommand = 'fly away'", "unknown command 'fly away'"),
+    ("[[timeline]]\nstep = 2\nwindow = 1\ncommand = 'pause'", "exactly one of `step`"),
+    ("[[timeline]]\nwindow = 0\ncommand = 'pause'", "`window` must be an integer of at least 1"),
+    ("[[timeline]]\nstep = 2", "needs `command`"),
+    ("[ground]\nkey = 'x'", "[ground] takes only `credentials`"),
+])
+def test_a_bad_mission_file_is_refused_in_one_line_naming_what(tmp_path: Path, text, names):
+    path = tmp_path / "bad.toml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError) as err:
+        load_script(path)
+    assert names in str(err.value) and "\n" not in str(err.value)
+    assert str(path) in str(err.value) or "unknown key" in str(err.value)
+
+
+def test_not_toml_is_refused_with_the_parsers_reason(tmp_path: Path):
+    path = tmp_path / "bad.toml"
+    path.write_text("steps = \n")
+    with pytest.raises(ConfigError, match="is not valid TOML"):
+        load_script(path)
+
+
+def test_the_api_configures_like_the_file():
+    mission = Mission(steps=20, scene={"name": "crater"}, contact={"period_steps": 10})
+    assert (mission.config.steps, mission.config.scene.name) == (20, "crater")
+    assert mission.config.contact.period_steps == 10
+    assert mission.config.contact.window_steps == 5  # the rest of the section is kept
+    mission.at_step(3, "pause").at_window(1, "resume")
+    assert [(e.step, e.window) for e in mission.timeline] == [(3, None), (None, 1)]
+    with pytest.raises(ConfigError, match="unknown command"):
+        mission.at_step(1, "rm -rf /")
+    with pytest.raises(ConfigError, match="unknown key"):
+        Mission(planner={"nme": "beam"})
+
+
+def test_a_timeline_outside_the_mission_is_refused_before_anything_starts(tmp_path: Path):
+    r = run_cli("run", str(EXAMPLE), "--steps", "4", "--out", str(tmp_path / "run"))
+    assert r.returncode == 2 and "has 1 windows in 4 steps" in r.stderr, r.stderr[-2000:]
+    assert not (tmp_path / "run" / "metrics.json").exists()
+    bad = parse_script({"timeline": [{"step": 50, "command": "pause"}]})
+    assert bad.timeline[0].step == 50
+
+
+@pytest.mark.e2e
+def test_the_example_mission_file_runs_and_its_commands_are_acknowledged(tmp_path: Path):
+    out = tmp_path / "run"
+    r = run_cli("run", str(EXAMPLE), "--steps", "12", "--out", str(out))
+    assert r.returncode == 0, r.stderr[-3000:]
+    metrics = read_metrics(out)
+    assert metrics["steps"] == 12
+    # Both commands went up the mutual-TLS uplink (fresh credentials), ran and came back
+    # acknowledged on the downlink.
+    assert (out / "credentials" / "station" / "station.pem").is_file()
+    assert "the ground link is mutual TLS" in r.stderr
+    rows = [json.loads(line) for line in
+            (out / "ground" / "received.jsonl").read_text().splitlines()]
+    acks = {row["verb"]: row for row in rows if row["kind"] == "command_ack"}
+    assert set(acks) == {"set", "condition"}
+    assert all(a["state"] == "executed" for a in acks.values()), acks
+    executed = {c["verb"]: c["step"] for c in metrics["link"]["commands"]}
+    assert executed == {v: a["executed_step"] for v, a in acks.items()}
+    assert json.loads((out / "ground" / "unsent.json").read_text()) == []
+    # The condition command took effect: the gate's configuration after it says so.
+    assert json.loads((out / "config.2.json").read_text())["condition"] == "gated"
+
+
+@pytest.mark.e2e
+def test_the_python_api_example_runs_a_mission_and_reads_its_record(tmp_path: Path):
+    r = subprocess.run([sys.executable, str(ROOT / "examples" / "run_mission.py"), "--steps",
+                        "12", "--out", str(tmp_path / "api")], capture_output=True, text=True,
+                       timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "final coverage" in r.stdout and r.stdout.count("executed at step") == 3, r.stdout
