@@ -14,6 +14,8 @@ checks that it is this one). In Foxglove: Layouts, Import from file.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import foxglove.layouts as fl
 
 from ecosystem.live_view import scene_topic
@@ -61,5 +63,96 @@ def layout_json(namespace: str = "rover") -> str:
     return json.dumps(json.loads(layout(namespace).to_json()), indent=2) + "\n"
 
 
+def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
+    """What the layout's panels show, drawn with matplotlib from a recorded mission's bag
+    (the last planner map, surface, path, depth image and status; the coverage of every
+    status): a picture for the README where the Foxglove app cannot run."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from rosbags.rosbag2 import Reader
+
+    from rovergate.graph import TOPICS
+    from rovergate.messages import decode
+    keys = Keys(namespace)
+    wanted = {"/" + keys.key(t): t for t in ("planner_map", "surface", "base_pose", "depth",
+                                              "status")}
+    last: dict[str, object] = {}
+    coverage: list[tuple[int, float]] = []
+    track: list[np.ndarray] = []
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic in wanted]
+        for conn, _, data in reader.messages(connections=conns):
+            topic = wanted[conn.topic]
+            if topic == "status":
+                status = decode("status", bytes(data))[1]
+                if status.state == "running":
+                    coverage.append((status.step, status.coverage))
+                last["status"] = status
+            elif topic == "base_pose":
+                track.append(decode("base_pose", bytes(data))[1].position[:2])
+            else:
+                last[topic] = bytes(data)
+    planner = decode("planner_map", last["planner_map"])[1].points
+    surface = decode("surface", last["surface"])[1]
+    step, depth = decode("depth", last["depth"])
+    status = last["status"]
+
+    fig = plt.figure(figsize=(12, 6.5))
+    grid = fig.add_gridspec(3, 2, width_ratios=(2, 1), height_ratios=(2, 1, 0.6))
+    ax = fig.add_subplot(grid[:, 0])
+    ax.scatter(surface["x"], surface["y"], s=0.2, c="#9a9a9a", label="observed surface")
+    sc = ax.scatter(planner["x"], planner["y"], s=1.5, c=planner["source"], cmap="turbo",
+                    vmin=0, vmax=3, label="planner map (by source)")
+    xy = np.array(track)
+    ax.plot(xy[:, 0], xy[:, 1], "-", color="black", lw=1.5, label="base_link (from /tf)")
+    ax.set(title=f"3D panel, from above: {TOPICS['planner_map'].suffix}, step "
+                 f"{planner_step(last['planner_map'])}", xlabel="x (m)", ylabel="y (m)",
+           aspect="equal")
+    cb = fig.colorbar(sc, ax=ax, shrink=0.6, ticks=[0, 1, 2, 3])
+    cb.ax.set_yticklabels(["observed", "predicted", "oracle FN", "truth"])
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=3, markerscale=6,
+              frameon=False)
+    ax = fig.add_subplot(grid[0, 1])
+    shown = np.where(np.isfinite(depth), depth, np.nan)
+    ax.imshow(shown, cmap="turbo")
+    ax.set(title=f"image panel: depth, step {step}", xticks=[], yticks=[])
+    ax = fig.add_subplot(grid[1, 1])
+    steps, cov = zip(*coverage, strict=True)
+    ax.plot(steps, cov, lw=2)
+    ax.set(title="plot panel: coverage", xlabel="step", ylim=(0, 1))
+    ax.grid(alpha=0.3)
+    ax = fig.add_subplot(grid[2, 1])
+    ax.axis("off")
+    ax.text(0, 0.5, f"mission status: step {status.step}/{status.steps_total}, "
+                    f"{status.state}\ncondition {status.condition}, coverage "
+                    f"{status.coverage:.3f}, collisions {status.collisions}",
+            family="monospace", va="center", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def planner_step(payload: bytes) -> int:
+    from rovergate.messages import decode
+    return decode("planner_map", payload)[0]
+
+
+def main() -> None:
+    import argparse
+    ap = argparse.ArgumentParser(description="Print the live view's Foxglove layout (JSON), "
+                                 "or draw what its panels show from a recorded mission.")
+    ap.add_argument("--picture", type=Path, help="write the picture here (needs --bag)")
+    ap.add_argument("--bag", type=Path, help="a mission's bag (OUT/bag)")
+    args = ap.parse_args()
+    if args.picture:
+        if not args.bag:
+            ap.error("--picture needs --bag OUT/bag")
+        picture(args.bag, args.picture)
+    else:
+        print(layout_json(), end="")
+
+
 if __name__ == "__main__":
-    print(layout_json(), end="")
+    main()

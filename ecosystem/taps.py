@@ -10,6 +10,7 @@ must not block: it is called on the transport's own thread.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Protocol
 
@@ -41,6 +42,7 @@ class Taps:
 
     def __init__(self, taps: list[Tap]) -> None:
         self.taps = list(taps)
+        self._lock = threading.Lock()
 
     def __bool__(self) -> bool:
         return bool(self.taps)
@@ -51,8 +53,11 @@ class Taps:
             try:
                 tap.put(topic, payload, now)
             except Exception as exc:
+                with self._lock:  # the transport calls from several threads
+                    if tap not in self.taps:
+                        continue
+                    self.taps.remove(tap)
                 log.error("%s failed and is stopped: %s", type(tap).__name__, exc)
-                self.taps.remove(tap)
                 self._close(tap)
 
     def close(self) -> None:

@@ -310,8 +310,8 @@ def run_script(script: MissionScript) -> int:
         raise ConfigError(f"{script.source}: a timeline needs the link to the ground; leave "
                           "contact.enabled at true")
     out = Path(cfg.out)
-    cfg, station_credentials = _credentials(cfg, script, out)
     _check_timeline(cfg, script)
+    cfg, station_credentials = _credentials(cfg, script, out)
     player = TimelinePlayer(cfg, script.timeline, station_credentials, out)
     try:
         return run_main(cfg, on_link=player.start)
@@ -402,8 +402,9 @@ class TimelinePlayer:
             self._cv.notify_all()
         if self._thread is not None:
             self._thread.join(30)
-        if self.station is not None:
-            self.station.close()
+        if self.station is None:
+            return  # the mission ended before its link came up: nothing was played
+        self.station.close()
         unsent = [e.describe() for _, _, e in self.pending]
         if unsent:
             log.warning("timeline entries never sent (their step or window did not come): %s",

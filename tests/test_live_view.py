@@ -159,3 +159,7 @@ def test_replay_serves_a_recorded_mission_to_foxglove(launch, tmp_path: Path):
                           "the scene (from the config.json beside the bag) and a map")
         cloud = _decode(client.channel(PLANNER), client.first(PLANNER))
         assert cloud.header.stamp.sec == 0  # the replay starts at the recording's start
+    # The README's picture of the layout is drawn from such a bag.
+    from ecosystem.layout import picture
+    picture(out / "bag", tmp_path / "layout.png")
+    assert (tmp_path / "layout.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -167,3 +167,33 @@ def test_replay_refuses_what_is_not_a_closed_bag(tmp_path: Path):
     (tmp_path / "open" / "open.mcap").write_bytes(b"\x89MCAP0\r\n")
     r = _replay(str(tmp_path / "open"))
     assert r.returncode == 2 and "no metadata.yaml" in r.stderr
+
+
+def test_a_failing_tap_is_stopped_and_the_others_go_on(caplog):
+    from ecosystem.taps import Taps
+
+    class Full:
+        closed = False
+
+        def put(self, topic, payload, time_ns):
+            raise OSError("No space left on device")
+
+        def close(self):
+            Full.closed = True
+
+    class Keeps:
+        def __init__(self):
+            self.got = []
+
+        def put(self, topic, payload, time_ns):
+            self.got.append(payload)
+
+        def close(self):
+            pass
+
+    keeps = Keeps()
+    taps = Taps([Full(), keeps])
+    taps.put("status", b"a")
+    taps.put("status", b"b")
+    assert keeps.got == [b"a", b"b"] and Full.closed and taps.taps == [keeps]
+    assert "Full failed and is stopped: No space left on device" in caplog.text
