@@ -81,8 +81,7 @@ class LiveView:
         self._scene_channel = SceneUpdateChannel(scene_topic(namespace), context=self._context)
         self._scene = _scene_update(scene) if scene is not None else None
         self._lock = threading.Lock()
-        self.watched = threading.Event()
-        """Set once a client subscribed to a channel of the mission."""
+        self._watched = threading.Event()
         view = self
 
         class Listener(foxglove.ServerListener):
@@ -90,7 +89,7 @@ class LiveView:
                 if channel.topic == scene_topic(namespace):
                     view.send_scene()
                 else:
-                    view.watched.set()
+                    view._watched.set()
 
         try:
             self.server = foxglove.start_server(
@@ -111,6 +110,10 @@ class LiveView:
         channel.log(payload, log_time=time_ns)
         if topic in FRAMES:
             self._tf.log(_transform(payload, FRAMES[topic]), log_time=time_ns)
+
+    def watched(self) -> bool:
+        """True once a Foxglove client subscribed to a channel of the mission."""
+        return self._watched.is_set()
 
     def send_scene(self) -> None:
         if self._scene is not None:

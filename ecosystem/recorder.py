@@ -43,6 +43,9 @@ log = logging.getLogger("rovergate.recorder")
 
 BAG = "bag"
 """The bag's directory under a mission's ``--out``."""
+MAX_PENDING_BYTES = 1 << 30
+"""Payload the writer may fall behind by; past it a message is dropped and counted rather
+than the mission's memory grown without bound (a disk far slower than the mission)."""
 
 Compression = Literal["zstd", "none"]
 
@@ -81,6 +84,10 @@ class RecordStats:
     write_s: float = 0.0
     """Seconds the writer thread spent writing (compression included)."""
     compression: str = "none"
+    dropped: int = 0
+    """Messages not recorded because the writer fell more than MAX_PENDING_BYTES behind."""
+    error: str | None = None
+    """Why the recording stopped early (a full disk, ...); None when it is complete."""
 
 
 class FlightRecorder:
@@ -106,14 +113,26 @@ class FlightRecorder:
         self._queue: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
         self._error: BaseException | None = None
         self._closed = False
+        self._pending = 0
+        self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._drain, name="flight-recorder", daemon=True)
         self._thread.start()
 
     def put(self, topic: str, payload: bytes, time_ns: int) -> None:
         if self._error is not None:
             raise RuntimeError(f"the flight recorder stopped: {self._error}")
-        if topic in self._connections:
-            self._queue.put((topic, payload, time_ns))
+        if topic not in self._connections:
+            return
+        with self._lock:
+            if self._pending + len(payload) > MAX_PENDING_BYTES:
+                self.stats.dropped += 1
+                if self.stats.dropped == 1:
+                    log.warning("the flight recorder is %d MB behind: dropping messages "
+                                "(counted in metrics.json's recording.dropped)",
+                                self._pending >> 20)
+                return
+            self._pending += len(payload)
+        self._queue.put((topic, payload, time_ns))
 
     def _drain(self) -> None:
         # The lowest priority for this thread alone (Linux: a thread id is a process id to
@@ -121,9 +140,11 @@ class FlightRecorder:
         with contextlib.suppress(OSError, AttributeError):
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         while (item := self._queue.get()) is not None:
+            topic, payload, time_ns = item
+            with self._lock:
+                self._pending -= len(payload)
             if self._error is not None:
                 continue  # failed: keep draining so that nothing waits on us
-            topic, payload, time_ns = item
             t0 = time.perf_counter()
             try:
                 self._writer.write(self._connections[topic], time_ns, payload)
@@ -142,11 +163,17 @@ class FlightRecorder:
         self._closed = True
         self._queue.put(None)
         self._thread.join()
-        t0 = time.perf_counter()
-        self._writer.close()
-        self.stats.write_s += time.perf_counter() - t0
         self.stats.messages = {t: self._counts[t] for t in self._connections}
-        self.stats.file_bytes = sum(p.stat().st_size for p in self.directory.iterdir())
+        t0 = time.perf_counter()
+        try:
+            self._writer.close()
+        except Exception as exc:
+            self._error = self._error or exc
+        self.stats.write_s += time.perf_counter() - t0
+        self.stats.file_bytes = sum(p.stat().st_size for p in self.directory.iterdir()
+                                    if p.is_file())
+        if self._error is not None:
+            self.stats.error = f"{type(self._error).__name__}: {self._error}"
         log.info("recorded %d messages (%.1f MB of payload, %.1f MB on disk) into %s",
                  sum(self._counts.values()), self.stats.payload_bytes / 1e6,
                  self.stats.file_bytes / 1e6, self.directory)

@@ -9,7 +9,8 @@ bag may be any rosbag2 bag of CDR messages (MCAP or SQLite storage), a study run
 
 The replay is a Zenoh peer; subscribers connect to its ``--listen`` endpoint (or it connects
 to theirs, or to a router, with ``--connect``). As on a live mission, a link from another
-machine may only subscribe (:func:`rovergate.access.rover_network`).
+machine may only subscribe (:func:`rovergate.access.rover_network`). ``--viz`` and ``--ros2``
+serve it to Foxglove and to the ROS 2 graph as ``rovergate run`` does.
 """
 
 from __future__ import annotations
@@ -40,8 +41,9 @@ class ReplayConfig:
     """Pace relative to the recording (2: twice as fast); 0 publishes as fast as it can."""
     wait_subscriber_s: float = 0.0
     """Before the first message, wait up to this many seconds for a subscriber to any of the
-    bag's keys, or a Foxglove client's subscription with --viz (0: start at once; what no one
-    subscribes to yet is lost, as on a live mission)."""
+    bag's keys, a Foxglove client's subscription with --viz, or a ROS 2 subscriber with
+    --ros2 (0: start at once; what no one subscribes to yet is lost, as on a live
+    mission)."""
     topics: tuple[str, ...] = ()
     """Only these ROS 2 topics (e.g. /rover/map/occupancy/planner); empty: all."""
     viz: bool = False
@@ -58,11 +60,12 @@ class ReplayConfig:
     ros2_domain: int = 0
     """The ROS domain id to publish in."""
     session: tyro.conf.OmitArgPrefixes[SessionConfig] = field(
-        default_factory=lambda: SessionConfig(listen=("tcp/127.0.0.1:7447",), namespace=""))
-    """Where subscribers reach the replay: it listens on tcp/127.0.0.1:7447 unless told
-    otherwise. --namespace publishes under another namespace than the recorded one (the
-    first segment of every key), e.g. to replay beside a live mission; empty: the
-    recorded one."""
+        default_factory=lambda: SessionConfig(namespace=""))
+    """Where subscribers reach the replay over Zenoh: --listen tcp/127.0.0.1:7447 (they
+    connect to it) or --connect ENDPOINT (a router, or a subscriber's listener); with
+    neither, only --viz and --ros2 get it. --namespace publishes under another namespace than
+    the recorded one (the first segment of every key), e.g. to replay beside a live mission;
+    empty: the recorded one."""
 
 
 @dataclass
@@ -113,6 +116,10 @@ def replay(cfg: ReplayConfig, taps=None) -> ReplayStats:
     if cfg.speed < 0:
         raise ConfigError(f"--speed must be at least 0 (0: as fast as it can), got {cfg.speed}")
     reader = open_bag(cfg.bag)
+    if not (cfg.session.listen or cfg.session.connect or taps):
+        reader.close()
+        raise ConfigError("the replay would reach no one: give --listen tcp/127.0.0.1:7447 "
+                          "(subscribers connect there), --connect ENDPOINT, --viz or --ros2")
     try:
         connections = [c for c in reader.connections
                        if not cfg.topics or c.topic in cfg.topics]
@@ -136,10 +143,12 @@ def replay(cfg: ReplayConfig, taps=None) -> ReplayStats:
                 congestion_control=zenoh.CongestionControl.BLOCK)
             for c in connections}
         try:
-            log.info("replaying %s (%d messages on %d topics) at speed %s; subscribers "
-                     "connect to %s", cfg.bag, sum(c.msgcount for c in connections),
-                     len(connections), cfg.speed or "max", ", ".join(cfg.session.listen)
-                     or ", ".join(cfg.session.connect) or "this session")
+            log.info("replaying %s (%d messages on %d topics) at speed %s; Zenoh: %s",
+                     cfg.bag, sum(c.msgcount for c in connections), len(connections),
+                     cfg.speed or "max",
+                     f"subscribers connect to {', '.join(cfg.session.listen)}"
+                     if cfg.session.listen else f"connected to {', '.join(cfg.session.connect)}"
+                     if cfg.session.connect else "no endpoint (the live view, ROS 2 only)")
             viewers = [t.watched for t in (taps.taps if taps else []) if hasattr(t, "watched")]
             _await_subscriber(list(publishers.values()), viewers, cfg.wait_subscriber_s, STOP)
             stats = ReplayStats()
@@ -176,16 +185,17 @@ def _recorded_namespace(connections) -> str:
 
 
 def _await_subscriber(publishers, viewers, timeout_s: float, stop) -> None:
-    """Wait for a Zenoh subscriber of a publisher, or a viewer's event."""
+    """Wait for a Zenoh subscriber of a publisher, or a tap that is watched (a Foxglove
+    client's subscription, a ROS 2 subscriber)."""
     if timeout_s <= 0:
         return
     deadline = time.monotonic() + timeout_s
     while not (any(p.matching_status.matching for p in publishers)
-               or any(v.is_set() for v in viewers)):
+               or any(watched() for watched in viewers)):
         if time.monotonic() > deadline:
-            raise ConfigError(f"no subscriber to any of the bag's keys within {timeout_s:.0f} "
-                              "s (--wait-subscriber-s); is it connected to the replay's "
-                              "--listen endpoint?")
+            raise ConfigError(f"no subscriber within {timeout_s:.0f} s (--wait-subscriber-s): "
+                              "none connected to the replay's --listen endpoint, opened the "
+                              "live view or subscribed from ROS 2")
         if stop.wait(0.05):
             return
 

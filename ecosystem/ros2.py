@@ -36,6 +36,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import queue
 import struct
 import threading
 import time
@@ -54,6 +55,9 @@ NODE_NAME = "rovergate_bridge"
 #: (reliable, volatile, keep last; depth 10 given): what rclcpp's QoS(10) publisher shows.
 QOS_KEEP_LAST_10 = "::,10:,:,:,,"
 GID_BYTES = 16
+#: Messages waiting for the router, at most (about 17 steps of every topic); past it, a
+#: message is dropped and counted rather than the mission held up.
+QUEUE_MESSAGES = 256
 
 
 def dds_type(msgtype: str) -> str:
@@ -115,7 +119,7 @@ class Ros2Bridge:
     """A :class:`ecosystem.taps.Tap` that publishes the mission into the ROS 2 graph."""
 
     def __init__(self, router: str = DEFAULT_ROUTER, domain: int = 0,
-                 namespace: str = "rover", timeout_s: float = 10.0) -> None:
+                 namespace: str = "rover", timeout_s: float = 5.0) -> None:
         import zenoh
         if not 0 <= domain <= 232:
             raise ConfigError(f"--ros2-domain must be a ROS domain id (0 to 232), got {domain}")
@@ -141,7 +145,8 @@ class Ros2Bridge:
             node_token(domain, self.zid, 0, self.node_namespace, NODE_NAME))]
         self._publishers: dict[str, tuple[zenoh.Publisher, bytes]] = {}
         self._sequence: dict[str, int] = {}
-        self._lock = threading.Lock()
+        self._queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(QUEUE_MESSAGES)
+        self.dropped = 0
         for entity, topic in enumerate(tapped_topics(), start=1):
             name, msgtype = "/" + keys.key(topic), TOPICS[topic].msgtype
             token = publisher_token(domain, self.zid, 0, entity, self.node_namespace,
@@ -153,20 +158,46 @@ class Ros2Bridge:
                 gid_of(token))
             self._sequence[topic] = 0
             self._tokens.append(liveliness.declare_token(token))
+        self._thread = threading.Thread(target=self._send, name="ros2-bridge", daemon=True)
+        self._thread.start()
         log.info("ROS 2 graph: node %s/%s on domain %d via the router at %s (%d topics)",
                  self.node_namespace, NODE_NAME, domain, router, len(self._publishers))
 
     def put(self, topic: str, payload: bytes, time_ns: int) -> None:
-        entry = self._publishers.get(topic)
-        if entry is None:
+        """Hand a message to the bridge's thread; never blocks the mission (a router that
+        does not keep up costs ROS 2 messages, counted, never the mission a step)."""
+        if topic not in self._publishers:
             return
-        publisher, gid = entry
-        with self._lock:  # numbered and sent in one order
-            self._sequence[topic] += 1
-            publisher.put(payload, attachment=attachment(self._sequence[topic], time.time_ns(),
-                                                         gid))
+        try:
+            self._queue.put_nowait((topic, payload))
+        except queue.Full:
+            self.dropped += 1
+            if self.dropped == 1 or self.dropped % 100 == 0:
+                log.warning("the ROS 2 router does not keep up: %d messages not sent to ROS 2 "
+                            "so far", self.dropped)
+
+    def _send(self) -> None:
+        while (item := self._queue.get()) is not None:
+            topic, payload = item
+            publisher, gid = self._publishers[topic]
+            self._sequence[topic] += 1  # per publisher, from 1, in the order sent
+            try:
+                publisher.put(payload, attachment=attachment(self._sequence[topic],
+                                                             time.time_ns(), gid))
+            except Exception as exc:  # the session closed under us: stop sending
+                log.error("the ROS 2 bridge stopped: %s", exc)
+                return
+
+    def watched(self) -> bool:
+        """True once a ROS 2 subscriber matches one of the bridge's publishers."""
+        return any(p.matching_status.matching for p, _ in self._publishers.values())
 
     def close(self) -> None:
+        self._queue.put(None)  # after what is queued
+        self._thread.join(30)
+        if self.dropped:
+            log.warning("%d messages were not sent to ROS 2 (the router did not keep up)",
+                        self.dropped)
         for token in self._tokens:
             token.undeclare()
         for publisher, _ in self._publishers.values():

@@ -72,7 +72,7 @@ def _run(args: list[str]) -> int:
 
         from mission.script import load_script, run_script
         script = load_script(Path(args[0]))
-        if "--config" in args:
+        if any(a == "--config" or a.startswith("--config=") for a in args):
             raise ConfigError("give a mission file or --config FILE, not both")
         cfg = tyro.cli(MissionConfig, args=_aliases(args[1:]), default=script.config,
                        prog="rovergate run MISSION.toml", description=COMMANDS["run"].help)

@@ -29,6 +29,7 @@ import logging
 import os
 import shutil
 import tempfile
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -107,18 +108,31 @@ def cluster_results(address: str, jobs: list[tuple[dict, str, str]], torch_threa
         workers = client.scheduler_info().get("workers", {})
         log.info("Dask cluster at %s: %d workers now (%s)", address, len(workers),
                  ", ".join(sorted(w.get("host", "?") for w in workers.values())) or "none yet")
-        futures = {client.submit(run_remote, job, torch_threads, key=f"rovergate-{job[1]}",
-                                 pure=False): job[1] for job in jobs}
+        threaded = sorted(w.get("name", a) for a, w in workers.items() if w.get("nthreads") != 1)
+        if threaded:
+            raise ConfigError(f"--cluster: workers {', '.join(map(str, threaded))} run more than "
+                              "one thread; a worker runs one mission at a time: start it with "
+                              "`dask worker ADDRESS --nthreads 1`")
+        # Keys of this study alone: Dask shares a key's result between clients, and another
+        # study on the cluster may have runs of the same id with other settings.
+        study = uuid.uuid4().hex[:12]
+        futures = {client.submit(run_remote, job, torch_threads, pure=False,
+                                 key=f"rovergate-{study}-{job[1]}"): job[1] for job in jobs}
         try:
             for future in as_completed(futures):
-                run_id = futures[future]
+                run_id = futures.pop(future)
                 try:
                     run_id, seconds, error, files = future.result()
                 except Exception as exc:  # KilledWorker after the allowed failures, ...
                     yield run_id, 0.0, f"{type(exc).__name__}: {exc}"
                     continue
+                finally:
+                    future.release()  # the run's bytes leave the cluster's memory
                 if error is None:
-                    store_run(runs_dir, run_id, files)
+                    try:
+                        store_run(runs_dir, run_id, files)
+                    except (OSError, ValueError) as exc:
+                        error = f"could not store the run: {type(exc).__name__}: {exc}"
                 yield run_id, seconds, error
         except BaseException:
             client.cancel(list(futures))

@@ -292,8 +292,10 @@ class GroundStation:
             self.log.info("seq %d %-11s step %3d  %s", frame.seq, frame.kind, frame.step,
                           summarize(frame.kind, value))
 
-    def send(self, line: str) -> GroundCommand | None:
-        """Send a typed command (once the mission manager's bridge listens)."""
+    def send(self, line: str, give_up: Callable[[], bool] | None = None
+             ) -> GroundCommand | None:
+        """Send a typed command (once the mission manager's bridge listens); None when it
+        was not sent (a bad command, or the bridge left, or ``give_up()`` said so first)."""
         try:
             command = parse_command(line, self.next_id)
         except ValueError as exc:
@@ -301,8 +303,11 @@ class GroundStation:
             return None
         self.next_id += 1
         # A put that no subscriber matches is lost: wait for the bridge to be on the link.
-        while not self._uplink.matching_status.matching and not STOP.is_set() \
-                and not self.rover_gone.is_set():
+        while not self._uplink.matching_status.matching:
+            if STOP.is_set() or self.rover_gone.is_set() or (give_up and give_up()):
+                self.log.error("command %d not sent (%s): the mission's bridge is not on the "
+                               "link", command.id, line.strip())
+                return None
             time.sleep(0.05)
         self._uplink.put(encode("uplink", command))
         self._sent.write(json.dumps({"id": command.id, "verb": command.verb,

@@ -15,7 +15,7 @@ import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +34,7 @@ from rovergate.module import STOP
 from rovergate.types import Channel, MissionStatus, Source, xyz
 
 if TYPE_CHECKING:
+    from ecosystem.recorder import FlightRecorder
     from ecosystem.taps import Taps
     from mission.operations import Operations
 
@@ -179,7 +180,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
     return record
 
 
-def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False) -> tuple[Taps, Any]:
+def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False
+               ) -> tuple[Taps, FlightRecorder | None]:
     """The taps of a mission (:mod:`ecosystem.taps`): the flight recorder unless
     ``--no-record``, the live view with ``--viz``, the ROS 2 graph with ``--ros2``. Returns
     the taps and the recorder (None when not recording)."""
@@ -207,7 +209,7 @@ def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False) -> tuple[Ta
     return taps, recorder
 
 
-def _recording(recorder: Any) -> dict:
+def _recording(recorder: FlightRecorder | None) -> dict:
     """What the flight recorder wrote (metrics.json's ``recording``)."""
     return dataclasses.asdict(recorder.stats) if recorder is not None else {}
 
@@ -240,7 +242,11 @@ def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
         def factory() -> Operations:
             ops = Operations(transport)
             if on_link is not None:
-                on_link()
+                try:
+                    on_link()
+                except BaseException:
+                    ops.close()  # the link's session and ground.json
+                    raise
             return ops
         record = run_mission(cfg, transport, on_step,
                              factory if cfg.contact.enabled else None, checkpoint=out,

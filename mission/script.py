@@ -306,6 +306,10 @@ def run_script(script: MissionScript) -> int:
     if cfg.in_process:
         raise ConfigError(f"{script.source}: a timeline goes through the ground link, which "
                           "only the process set has; leave out --in-process")
+    if cfg.resume:
+        raise ConfigError(f"{script.source}: a timeline is not resumed (its commands that "
+                          "ran would go up again); resume with `rovergate run --out OUT "
+                          "--resume` and send what is left with `rovergate ground`")
     if not cfg.contact.enabled:
         raise ConfigError(f"{script.source}: a timeline needs the link to the ground; leave "
                           "contact.enabled at true")
@@ -328,11 +332,16 @@ def _credentials(cfg: MissionConfig, script: MissionScript, out: Path
                               "the station's too: [ground] credentials = \"DIR/station\"")
         return cfg, script.station_credentials
     from mission.credentials import CredentialsConfig, create
-    made = create(CredentialsConfig(out=out / "credentials", force=True,
-                                    station_name=cfg.contact.ground_stations[0]))
+    root = out / "credentials"
+    made = {name: root / name for name in ("ca", "rover", "station")}
+    if all(d.is_dir() for d in made.values()):
+        # This directory's own, from an earlier run of a script (a mission may be using
+        # them now): used again, never overwritten.
+        log.info("the timeline's uplink is mutual TLS with the credentials in %s", root)
+    else:
+        made = create(CredentialsConfig(out=root, station_name=cfg.contact.ground_stations[0]))
+        log.info("the timeline's uplink is mutual TLS with fresh credentials in %s", root)
     contact = dataclasses.replace(cfg.contact, credentials=made["rover"])
-    log.info("the timeline's uplink is mutual TLS with fresh credentials in %s",
-             out / "credentials")
     return dataclasses.replace(cfg, contact=contact), made["station"]
 
 
@@ -392,9 +401,10 @@ class TimelinePlayer:
                                   or self._stop.is_set())
             if self._stop.is_set():
                 break
-            self.pending.pop(0)
             log.info("timeline %s (the ground saw step %d)", entry.describe(), self._seen_step)
-            self.station.send(entry.command)
+            if self.station.send(entry.command, give_up=self._stop.is_set) is None:
+                break  # not sent: it stays pending, and unsent.json lists it
+            self.pending.pop(0)
 
     def stop(self) -> None:
         self._stop.set()

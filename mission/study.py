@@ -104,8 +104,8 @@ class StudyConfig:
     """Show a progress bar with an ETA."""
     record: bool = False
     """Record every run's messages into OUT/runs/<id>/bag (`rovergate replay` plays one).
-    Off by default: a bag holds about 70 MB per 100 steps (README, "Recording and replay"),
-    which over a study's hundreds of runs is tens of GB."""
+    Off by default: a bag holds about 150 MB per 100 steps (README, "The flight recorder and
+    replay"), which over a study's hundreds of runs is tens of GB."""
     mission: MissionConfig = field(default_factory=MissionConfig)
     """Every other mission setting (sensing, planner, gate, ...), as `rovergate run` takes
     them. The study sets the scene, start, condition, seed, steps, platform, out, in-process
@@ -365,6 +365,8 @@ def _run_one(job: tuple[dict, str, str]) -> tuple[str, float, str | None]:
         tmp.mkdir(parents=True)
         record = run_in_process(cfg)
         cfg.out = final
+        if record.recording:  # the bag moves with the run's directory
+            record.recording["path"] = str(final / Path(record.recording["path"]).name)
         save_config(cfg, tmp / "config.json")
         write_report(cfg, record, tmp, plots=False)
         os.replace(tmp, final)

@@ -382,8 +382,9 @@ class MissionConfig:
     OUT/bag/ (ecosystem/recorder.py); `rovergate replay OUT/bag` publishes it again.
     --no-record turns it off (a study's runs are not recorded unless it is given --record)."""
     record_compression: Literal["none", "zstd"] = "none"
-    """Compression of the bag's MCAP chunks: none, or zstd (a quarter smaller; its writer
-    thread then takes a share of the CPU the loop needs: README, "Recording and replay")."""
+    """Compression of the bag's MCAP chunks: none, or zstd (a fifth smaller; its writer
+    thread then takes more of the CPU the loop needs: README, "The flight recorder and
+    replay")."""
     viz: bool = False
     """Serve the mission live to Foxglove (ecosystem/live_view.py): a Foxglove WebSocket
     server on ws://VIZ_HOST:VIZ_PORT; docs/foxglove-layout.json arranges its panels."""

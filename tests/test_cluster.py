@@ -68,6 +68,7 @@ def test_a_study_on_a_cluster_writes_the_local_pools_runs_even_when_a_worker_die
                 if busy is None:
                     time.sleep(0.1)  # polling the scheduler's state, not waiting on a clock
             assert busy is not None, "no worker took a run within 120 s"
+            assert all(str(k).startswith("rovergate-") for k in processing[busy])
             name = client.scheduler_info()["workers"][busy]["name"]
             victim = workers[int(str(name)[1:])]
             _stop(victim)

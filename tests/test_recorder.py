@@ -197,3 +197,22 @@ def test_a_failing_tap_is_stopped_and_the_others_go_on(caplog):
     taps.put("status", b"b")
     assert keeps.got == [b"a", b"b"] and Full.closed and taps.taps == [keeps]
     assert "Full failed and is stopped: No space left on device" in caplog.text
+
+
+def test_a_recorder_that_cannot_write_says_so_in_its_stats(tmp_path: Path):
+    from ecosystem.recorder import FlightRecorder
+    from rovergate.messages import encode
+    from rovergate.types import MissionStatus
+    recorder = FlightRecorder(tmp_path / "bag")
+    payload = encode("status", MissionStatus(0, 5, "running", "obs", 0.0, 0))
+    recorder.put("status", payload, 1)
+    recorder._writer.storage.bio.close()  # the file goes away under the writer (a full disk)
+    recorder.put("status", payload, 2)
+    with pytest.raises(RuntimeError, match="stopped early"):
+        recorder.close()
+    assert recorder.stats.error == "ValueError: I/O operation on closed file"
+
+
+def test_replay_that_would_reach_no_one_is_refused(recorded: Path):
+    r = _replay(str(recorded / "bag"))
+    assert r.returncode == 2 and "would reach no one" in r.stderr

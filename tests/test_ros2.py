@@ -63,10 +63,9 @@ def _ros_decoder(msgtype: str):
                                                       data=text.encode()))
 
 
-@pytest.mark.e2e
-def test_a_ros2_subscriber_receives_the_planner_map_through_a_router(launch, tmp_path: Path):
-    port = free_loopback_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+def _configs(endpoint: str) -> tuple[zenoh.Config, zenoh.Config]:
+    """A Zenoh router on ``endpoint`` (standing in for rmw_zenohd) and a client of it (the
+    ROS 2 side's subscriber)."""
     router_conf = zenoh.Config()
     router_conf.insert_json5("mode", '"router"')
     router_conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
@@ -75,17 +74,29 @@ def test_a_ros2_subscriber_receives_the_planner_map_through_a_router(launch, tmp
     client_conf.insert_json5("mode", '"client"')
     client_conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     client_conf.insert_json5("scouting/multicast/enabled", "false")
-    samples: list[tuple[str, bytes, bytes | None]] = []
-    waiter = Waiter()
+    return router_conf, client_conf
 
-    def on_sample(sample: zenoh.Sample) -> None:
+
+class Received:
+    def __init__(self) -> None:
+        self.samples: list[tuple[str, bytes, bytes | None]] = []
+        self.waiter = Waiter()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
         attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
-        with waiter.cv:
-            samples.append((str(sample.key_expr), sample.payload.to_bytes(), attachment))
-            waiter.cv.notify_all()
+        with self.waiter.cv:
+            self.samples.append((str(sample.key_expr), sample.payload.to_bytes(), attachment))
+            self.waiter.cv.notify_all()
 
+
+@pytest.mark.e2e
+def test_a_ros2_subscriber_receives_the_planner_map_through_a_router(launch, tmp_path: Path):
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    router_conf, client_conf = _configs(endpoint)
+    received = Received()
+    samples, waiter = received.samples, received.waiter
     with zenoh.open(router_conf), zenoh.open(client_conf) as ros:
-        sub = ros.declare_subscriber("0/rover/map/occupancy/planner/**", on_sample)
+        sub = ros.declare_subscriber("0/rover/map/occupancy/planner/**", received)
         mission = launch("run", "--ros2", "--ros2-router", endpoint, "--steps", "300",
                          "--platform", "flyer", "--out", str(tmp_path / "run"))
         waiter.wait_for(lambda: len(samples) >= 3, 180, "three planner maps on the ROS 2 key",
@@ -117,6 +128,35 @@ def test_a_ros2_subscriber_receives_the_planner_map_through_a_router(launch, tmp
     assert publishers[0].split("/")[10:] == [
         "sensor_msgs::msg::dds_::PointCloud2_",
         ros2.type_hash("sensor_msgs/msg/PointCloud2"), ros2.QOS_KEEP_LAST_10]
+
+
+@pytest.mark.e2e
+def test_a_replay_reaches_the_ros2_graph_with_its_own_sequence(launch, tmp_path: Path):
+    import subprocess
+
+    from rosbags.rosbag2 import Reader
+
+    from tests.conftest import ROVERGATE
+    out = tmp_path / "run"
+    r = subprocess.run([*ROVERGATE, "run", "--in-process", "--steps", "3", "--out", str(out),
+                        "--no-progress"], capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with Reader(out / "bag") as reader:
+        maps = [bytes(d) for c, _, d in reader.messages()
+                if c.topic == "/rover/map/occupancy/planner"]
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    router_conf, client_conf = _configs(endpoint)
+    received = Received()
+    with zenoh.open(router_conf), zenoh.open(client_conf) as ros:
+        sub = ros.declare_subscriber("0/rover/map/occupancy/planner/**", received)
+        replay = launch("replay", str(out / "bag"), "--ros2", "--ros2-router", endpoint,
+                        "--speed", "0", "--wait-subscriber-s", "60")
+        received.waiter.wait_for(lambda: len(received.samples) >= len(maps), 60,
+                                 "the replayed maps on the ROS 2 key")
+        assert replay.finish(60) == 0
+        sub.undeclare()
+    assert [p for _, p, _ in received.samples] == maps
+    assert [ros2.parse_attachment(a)[0] for _, _, a in received.samples] == [1, 2, 3]
 
 
 @pytest.mark.e2e

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from mission.script import Mission, load_script, parse_script
+from mission.script import Mission, load_script
 from rovergate.errors import ConfigError
 from tests.conftest import read_metrics, run_cli
 
@@ -72,9 +72,9 @@ def test_the_api_configures_like_the_file():
 def test_a_timeline_outside_the_mission_is_refused_before_anything_starts(tmp_path: Path):
     r = run_cli("run", str(EXAMPLE), "--steps", "4", "--out", str(tmp_path / "run"))
     assert r.returncode == 2 and "has 1 windows in 4 steps" in r.stderr, r.stderr[-2000:]
-    assert not (tmp_path / "run" / "metrics.json").exists()
-    bad = parse_script({"timeline": [{"step": 50, "command": "pause"}]})
-    assert bad.timeline[0].step == 50
+    assert not (tmp_path / "run").exists()  # no credentials made, nothing written
+    r = run_cli("run", str(EXAMPLE), "--steps", "40", "--resume", "--out", str(tmp_path / "r"))
+    assert r.returncode == 2 and "a timeline is not resumed" in r.stderr, r.stderr[-2000:]
 
 
 @pytest.mark.e2e

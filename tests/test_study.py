@@ -284,13 +284,18 @@ def test_other_mission_flags_reach_every_run(tmp_path: Path):
                         "--conditions", "learned", "--reps", "1", "--filter-reps", "1",
                         "--steps", "2", "--workers", "1", "--bootstrap", "200",
                         "--no-progress", "--out", str(out),
-                        "--mission.sensing.noise-frac", "0.01", "--mission.gate.k", "3"],
+                        "--mission.sensing.noise-frac", "0.01", "--mission.gate.k", "3",
+                        "--record", "--mission.record-compression", "zstd"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     (run,) = (out / "runs").iterdir()
     saved = json.loads((run / "config.json").read_text())
     assert saved["sensing"]["noise_frac"] == 0.01 and saved["gate"]["k"] == 3
     assert (saved["steps"], saved["platform"], saved["in_process"]) == (2, "flyer", True)
+    # --record: the run's bag is in its directory, where `rovergate replay` takes it.
+    recording = json.loads((run / "metrics.json").read_text())["recording"]
+    assert recording["path"] == str(run / "bag") and recording["compression"] == "zstd"
+    assert (run / "bag" / "metadata.yaml").is_file()
 
 
 # ----------------------------------------------------------------------------- cells
