@@ -3,8 +3,8 @@
 Runs the same mission (same seed: the same messages) with the recorder off, with zstd
 chunks, and with uncompressed chunks, several rounds alternating between the three, and
 prints the median step wall time of each (the loop's own clock: from one step's tick to the
-next), the ratio to the unrecorded run, the writer thread's seconds per step (off the loop's
-thread), and the bag's size per 100 steps. In process, every message is encoded for the
+next), the ratio to the unrecorded run, the writer's seconds per step (in its own process),
+and the bag's size per 100 steps. In process, every message is encoded for the
 recorder on the loop's thread (the process set has the bytes already); in the process set
 (``--processes``) the mission manager gets the bytes from its subscriptions.
 
@@ -62,7 +62,7 @@ def main() -> None:
     mode = "process set" if args.processes else "in process"
     print(f"\n{args.platform}, {mode}, {args.steps} steps, {args.rounds} rounds "
           f"(medians over rounds)")
-    print("| recorder | median step s | ratio to off | writer thread s/step | MB per 100 steps |")
+    print("| recorder | median step s | ratio to off | writer s/step | MB per 100 steps |")
     print("|---|---|---|---|---|")
     for name in SETTINGS:
         step = statistics.median(steps_s[name])

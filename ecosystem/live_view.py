@@ -107,9 +107,10 @@ class LiveView:
         channel = self.channels.get(topic)
         if channel is None:
             return
-        channel.log(payload, log_time=time_ns)
+        data = bytes(payload)
+        channel.log(data, log_time=time_ns)
         if topic in FRAMES:
-            self._tf.log(_transform(payload, FRAMES[topic]), log_time=time_ns)
+            self._tf.log(_transform(data, FRAMES[topic]), log_time=time_ns)
 
     def watched(self) -> bool:
         """True once a Foxglove client subscribed to a channel of the mission."""

@@ -8,41 +8,41 @@ the CDR payloads as they travelled (the process set) or as the process set would
 (``--in-process``). A message's log time is when the recorder received it (wall clock, ns);
 its header stamp is the planning step (:mod:`rovergate.messages`).
 
-Writing runs on a thread of its own: the transport hands a payload over and goes on. Any
-MCAP reader opens the bag (``mcap`` with ``mcap-ros2-support``, Foxglove, ``ros2 bag`` with
-the MCAP plugin); ``rovergate replay OUT/bag`` publishes it again over Zenoh.
+The transport hands a payload over and goes on: a thread of the recorder sends it down a
+pipe to the writer, a process of its own (:mod:`ecosystem.bag_writer`), so that rosbags'
+copies never hold the mission's Python lock. Any MCAP reader opens the bag (``mcap`` with
+``mcap-ros2-support``, Foxglove, ``ros2 bag`` with the MCAP plugin); ``rovergate replay
+OUT/bag`` publishes it again over Zenoh.
 
-A mission whose manager is killed leaves a bag without its summary and ``metadata.yaml``;
-MCAP's streaming readers still read its finished chunks. A resumed mission records into
-``OUT/bag.2`` (and so on), beside the first.
+The writer closes the bag when its input ends, which it does when the mission's process
+dies in any way too: a mission manager killed outright leaves a closed bag of what it had
+sent. A resumed mission records into ``OUT/bag.2`` (and so on), beside the first.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
-import os
 import queue
 import shutil
+import subprocess
+import sys
 import threading
-import time
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
-
-from ecosystem.taps import tapped_topics
-from rovergate.graph import TOPICS
+from ecosystem.bag_writer import HEADER
+from ecosystem.taps import Payload, tapped_topics
 from rovergate.keys import Keys
-from rovergate.messages import TYPESTORE
 
 log = logging.getLogger("rovergate.recorder")
 
 BAG = "bag"
 """The bag's directory under a mission's ``--out``."""
+CLOSE_TIMEOUT_S = 120.0
+"""How long the writer may take to write what is pending and close the bag."""
 MAX_PENDING_BYTES = 1 << 30
 """Payload the writer may fall behind by; past it a message is dropped and counted rather
 than the mission's memory grown without bound (a disk far slower than the mission)."""
@@ -82,7 +82,7 @@ class RecordStats:
     payload_bytes: int = 0
     file_bytes: int = 0
     write_s: float = 0.0
-    """Seconds the writer thread spent writing (compression included)."""
+    """Seconds the writer process spent writing (compression included)."""
     compression: str = "none"
     dropped: int = 0
     """Messages not recorded because the writer fell more than MAX_PENDING_BYTES behind."""
@@ -91,7 +91,10 @@ class RecordStats:
 
 
 class FlightRecorder:
-    """A :class:`ecosystem.taps.Tap` that writes every message into a rosbag2 MCAP bag."""
+    """A :class:`ecosystem.taps.Tap` that records every message into a rosbag2 MCAP bag.
+
+    The mission's side only queues each payload; a thread of its own hands it down a pipe to
+    the writer process (:mod:`ecosystem.bag_writer`), which writes the bag with rosbags."""
 
     def __init__(self, directory: Path, namespace: str = "rover",
                  compression: Compression = "none") -> None:
@@ -99,29 +102,32 @@ class FlightRecorder:
             raise ValueError(f"record compression {compression!r}: choose zstd or none")
         self.directory = Path(directory)
         self.directory.parent.mkdir(parents=True, exist_ok=True)
-        self._writer = Writer(self.directory, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compression == "zstd":
-            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self._writer.open()
-        keys = Keys(namespace)
-        self._connections = {
-            t: self._writer.add_connection(ros_topic(keys, t), TOPICS[t].msgtype,
-                                           typestore=TYPESTORE)
-            for t in tapped_topics()}
+        if self.directory.exists():
+            raise FileExistsError(f"{self.directory} exists; a bag is written only once")
+        self._topics = tapped_topics()
+        self._index = {t: i for i, t in enumerate(self._topics)}
+        # Its own process group, so that a Ctrl-C to the mission's terminal does not reach
+        # it (the mission ends it), but the mission's session: Linux schedules a session as
+        # a group (autogroup), and in a session of its own the writer's low priority would
+        # count for nothing against the mission's processes.
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "ecosystem.bag_writer", str(self.directory), namespace,
+             compression], stdin=subprocess.PIPE, stdout=subprocess.PIPE, process_group=0)
         self.stats = RecordStats(str(self.directory), compression=compression)
-        self._counts: Counter[str] = Counter()
-        self._queue: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
-        self._error: BaseException | None = None
+        self._queue: queue.SimpleQueue[tuple[int, Payload, int] | threading.Event | None] = \
+            queue.SimpleQueue()
+        self._error: str | None = None
         self._closed = False
         self._pending = 0
         self._lock = threading.Lock()
-        self._thread = threading.Thread(target=self._drain, name="flight-recorder", daemon=True)
+        self._thread = threading.Thread(target=self._send, name="flight-recorder", daemon=True)
         self._thread.start()
 
-    def put(self, topic: str, payload: bytes, time_ns: int) -> None:
+    def put(self, topic: str, payload: Payload, time_ns: int) -> None:
         if self._error is not None:
             raise RuntimeError(f"the flight recorder stopped: {self._error}")
-        if topic not in self._connections:
+        index = self._index.get(topic)
+        if index is None:
             return
         with self._lock:
             if self._pending + len(payload) > MAX_PENDING_BYTES:
@@ -132,51 +138,72 @@ class FlightRecorder:
                                 self._pending >> 20)
                 return
             self._pending += len(payload)
-        self._queue.put((topic, payload, time_ns))
+        self._queue.put((index, payload, time_ns))
 
-    def _drain(self) -> None:
-        # The lowest priority for this thread alone (Linux: a thread id is a process id to
-        # setpriority): the recorder takes the CPU the loop leaves idle, not the loop's.
-        with contextlib.suppress(OSError, AttributeError):
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    def _send(self) -> None:
+        pipe = self._proc.stdin
         while (item := self._queue.get()) is not None:
-            topic, payload, time_ns = item
+            if isinstance(item, threading.Event):
+                item.set()  # flush(): everything before it is in the pipe
+                continue
+            index, payload, time_ns = item
             with self._lock:
                 self._pending -= len(payload)
             if self._error is not None:
-                continue  # failed: keep draining so that nothing waits on us
-            t0 = time.perf_counter()
-            try:
-                self._writer.write(self._connections[topic], time_ns, payload)
-            except BaseException as exc:
-                self._error = exc
-                log.error("the flight recorder cannot write %s: %s", self.directory, exc)
                 continue
-            self.stats.write_s += time.perf_counter() - t0
-            self._counts[topic] += 1
-            self.stats.payload_bytes += len(payload)
+            try:
+                data = bytes(payload)  # a Deferred message is encoded here, off the loop
+            except Exception as exc:
+                self._error = f"a {self._topics[index]} message did not encode: {exc}"
+                log.error("the flight recorder stopped: %s", self._error)
+                continue
+            try:  # the pipe's writes release Python's lock: the loop goes on meanwhile
+                pipe.write(HEADER.pack(index, time_ns, len(data)))
+                pipe.write(data)
+                pipe.flush()  # in the pipe, not in this process: a killed mission loses none
+            except OSError as exc:
+                self._error = f"the bag writer process ended ({exc})"
+                log.error("the flight recorder cannot write %s: %s", self.directory,
+                          self._error)
+        with contextlib.suppress(OSError):
+            pipe.close()  # the end of the input: the writer closes the bag
+
+    def flush(self, timeout_s: float = 60.0) -> bool:
+        """Wait until every message put so far is in the writer's pipe (True) or
+        ``timeout_s`` passed (False)."""
+        done = threading.Event()
+        self._queue.put(done)
+        return done.wait(timeout_s)
 
     def close(self) -> RecordStats:
-        """Write what is pending, the bag's summary and ``metadata.yaml``."""
+        """Send what is pending, let the writer close the bag; what it wrote."""
         if self._closed:
             return self.stats
         self._closed = True
         self._queue.put(None)
         self._thread.join()
-        self.stats.messages = {t: self._counts[t] for t in self._connections}
-        t0 = time.perf_counter()
+        self._proc.stdin = None  # closed by the sender: communicate() only reads
         try:
-            self._writer.close()
-        except Exception as exc:
-            self._error = self._error or exc
-        self.stats.write_s += time.perf_counter() - t0
-        self.stats.file_bytes = sum(p.stat().st_size for p in self.directory.iterdir()
-                                    if p.is_file())
-        if self._error is not None:
-            self.stats.error = f"{type(self._error).__name__}: {self._error}"
+            out, _ = self._proc.communicate(timeout=CLOSE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            out, _ = self._proc.communicate()
+            self._error = self._error or (f"the bag writer did not finish within "
+                                          f"{CLOSE_TIMEOUT_S:.0f} s")
+        try:
+            written = json.loads(out.decode().strip().splitlines()[-1])
+        except (ValueError, IndexError):
+            written = {"error": f"the bag writer exited with code {self._proc.returncode} "
+                                "and no summary"}
+        self.stats.messages = written.get("messages", {})
+        self.stats.payload_bytes = written.get("payload_bytes", 0)
+        self.stats.file_bytes = written.get("file_bytes", 0)
+        self.stats.write_s = written.get("write_s", 0.0)
+        error = self._error or written.get("error")
+        self.stats.error = error
         log.info("recorded %d messages (%.1f MB of payload, %.1f MB on disk) into %s",
-                 sum(self._counts.values()), self.stats.payload_bytes / 1e6,
+                 sum(self.stats.messages.values()), self.stats.payload_bytes / 1e6,
                  self.stats.file_bytes / 1e6, self.directory)
-        if self._error is not None:
-            raise RuntimeError(f"the flight recorder stopped early: {self._error}")
+        if error is not None:
+            raise RuntimeError(f"the flight recorder stopped early: {error}")
         return self.stats

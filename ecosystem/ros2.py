@@ -182,8 +182,8 @@ class Ros2Bridge:
             publisher, gid = self._publishers[topic]
             self._sequence[topic] += 1  # per publisher, from 1, in the order sent
             try:
-                publisher.put(payload, attachment=attachment(self._sequence[topic],
-                                                             time.time_ns(), gid))
+                publisher.put(bytes(payload), attachment=attachment(self._sequence[topic],
+                                                                    time.time_ns(), gid))
             except Exception as exc:  # the session closed under us: stop sending
                 log.error("the ROS 2 bridge stopped: %s", exc)
                 return

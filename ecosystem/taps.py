@@ -5,6 +5,10 @@ them from whichever transport carries the messages: the process set's mission ma
 its Zenoh subscriptions (the bytes as they travelled), the in-process loop from each value it
 routes (encoded as the process set would send it), and ``rovergate replay`` from a bag. A tap
 must not block: it is called on the transport's own thread.
+
+A payload is ``bytes``, or a :class:`Deferred` message that is encoded when a tap first needs
+its bytes (``bytes(payload)``): the in-process loop hands its large messages over that way,
+so that a tap with a thread of its own encodes them there, not on the loop's thread.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 from rovergate.graph import TOPICS
@@ -25,8 +30,34 @@ def tapped_topics() -> tuple[str, ...]:
     return tuple(name for name, t in TOPICS.items() if t.network == "rover" and t.kind == "topic")
 
 
+class Deferred:
+    """A message encoded once, when a tap first asks for its bytes (from any thread).
+    ``len()`` is an estimate of its size until then (its arrays' bytes)."""
+
+    __slots__ = ("_encode", "_data", "_lock", "size_hint")
+
+    def __init__(self, encode: Callable[[], bytes], size_hint: int) -> None:
+        self._encode = encode
+        self._data: bytes | None = None
+        self._lock = threading.Lock()
+        self.size_hint = size_hint
+
+    def __bytes__(self) -> bytes:
+        with self._lock:
+            if self._data is None:
+                self._data = self._encode()
+                self._encode = None  # the value it held may go
+            return self._data
+
+    def __len__(self) -> int:
+        return len(self._data) if self._data is not None else self.size_hint
+
+
+Payload = bytes | Deferred
+
+
 class Tap(Protocol):
-    def put(self, topic: str, payload: bytes, time_ns: int) -> None:
+    def put(self, topic: str, payload: Payload, time_ns: int) -> None:
         """One message of ``topic`` (a name of :data:`rovergate.graph.TOPICS`), received at
         ``time_ns`` (nanoseconds since the epoch)."""
         ...
@@ -47,7 +78,7 @@ class Taps:
     def __bool__(self) -> bool:
         return bool(self.taps)
 
-    def put(self, topic: str, payload: bytes, time_ns: int | None = None) -> None:
+    def put(self, topic: str, payload: Payload, time_ns: int | None = None) -> None:
         now = time.time_ns() if time_ns is None else time_ns
         for tap in list(self.taps):
             try:

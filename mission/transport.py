@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
+
 from rovergate.config import MissionConfig
 from rovergate.errors import MissionFailed
 from rovergate.graph import LAUNCHED, MODULES, consumers, producer
@@ -75,6 +77,26 @@ class Transport(Protocol):
         ...
 
 
+#: Topics whose messages are large (clouds, images): handed to the taps unencoded, to be
+#: encoded on a tap's own thread. Their arrays are made read-only first: every module makes
+#: them afresh each step, and none may change one it sent or received (a test run of every
+#: in-process mission, recorded by default, holds them to it).
+_DEFERRED = frozenset({"depth", "surface", "predicted", "planner_map"})
+
+
+def _payload(topic: str, value: Any):
+    """What the taps get for a value of ``topic``: its CDR bytes, or for a large message a
+    :class:`ecosystem.taps.Deferred` encoding of it."""
+    if topic not in _DEFERRED:
+        return encode(topic, value)
+    from ecosystem.taps import Deferred
+    arrays = [a for a in (value[1] if isinstance(value, tuple) else value.points,)
+              if isinstance(a, np.ndarray)]
+    for a in arrays:
+        a.flags.writeable = False
+    return Deferred(lambda: encode(topic, value), sum(a.nbytes for a in arrays))
+
+
 class InProcessTransport:
     """Every module's logic in this process, driven by the graph: a tick is delivered to the
     modules that read it, and every module whose inputs of its next step are complete runs,
@@ -130,7 +152,7 @@ class InProcessTransport:
 
     def _deliver(self, topic: str, value: Any) -> None:
         if self.taps:
-            self.taps.put(topic, encode(topic, value))
+            self.taps.put(topic, _payload(topic, value))
         step, value = stamped(topic, value)
         for module, name, _ in consumers(topic):
             self._buffers[module][name][step] = value

@@ -199,18 +199,46 @@ def test_a_failing_tap_is_stopped_and_the_others_go_on(caplog):
     assert "Full failed and is stopped: No space left on device" in caplog.text
 
 
-def test_a_recorder_that_cannot_write_says_so_in_its_stats(tmp_path: Path):
+def test_a_recorder_whose_writer_dies_says_so_and_does_not_hold_the_mission(tmp_path: Path):
     from ecosystem.recorder import FlightRecorder
     from rovergate.messages import encode
     from rovergate.types import MissionStatus
     recorder = FlightRecorder(tmp_path / "bag")
     payload = encode("status", MissionStatus(0, 5, "running", "obs", 0.0, 0))
     recorder.put("status", payload, 1)
-    recorder._writer.storage.bio.close()  # the file goes away under the writer (a full disk)
-    recorder.put("status", payload, 2)
+    recorder._proc.kill()  # the writer process dies (out of memory, killed, ...)
+    recorder._proc.wait(30)
+    big = b"\0" * (1 << 20)  # more than a pipe holds: a writer that blocked would hang here
+    for t in range(4):
+        recorder.put("surface", big, t)
     with pytest.raises(RuntimeError, match="stopped early"):
         recorder.close()
-    assert recorder.stats.error == "ValueError: I/O operation on closed file"
+    assert recorder.stats.error
+
+
+def test_a_killed_mission_leaves_a_closed_bag(tmp_path: Path):
+    """The writer closes the bag when its input ends, however the mission's process ends."""
+    import signal
+    import sys
+    code = ("import sys, time; from pathlib import Path; "
+            "from ecosystem.recorder import FlightRecorder; "
+            "from rovergate.messages import encode; from rovergate.types import MissionStatus; "
+            "r = FlightRecorder(Path(sys.argv[1])); "
+            "[r.put('status', encode('status', MissionStatus(s, 9, 'running', 'obs', 0.0, 0)),"
+            " s) for s in range(5)]; r.flush(); print(r._proc.pid, flush=True); "
+            "time.sleep(600)")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path / "bag")],
+                            stdout=subprocess.PIPE, text=True)
+    writer = int(proc.stdout.readline())
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(30)
+    from rosbags.rosbag2 import Reader
+
+    from tests.conftest import wait_gone
+    # The writer sees the end of its input, closes the bag and exits.
+    assert wait_gone(writer, 60), "the bag writer did not exit within 60 s of the mission"
+    with Reader(tmp_path / "bag") as reader:
+        assert [c.msgcount for c in reader.connections if c.topic.endswith("status")] == [5]
 
 
 def test_replay_that_would_reach_no_one_is_refused(recorded: Path):

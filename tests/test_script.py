@@ -57,6 +57,8 @@ def test_not_toml_is_refused_with_the_parsers_reason(tmp_path: Path):
 
 
 def test_the_api_configures_like_the_file():
+    import rovergate
+    assert rovergate.Mission is Mission  # `from rovergate import Mission`
     mission = Mission(steps=20, scene={"name": "crater"}, contact={"period_steps": 10})
     assert (mission.config.steps, mission.config.scene.name) == (20, "crater")
     assert mission.config.contact.period_steps == 10
