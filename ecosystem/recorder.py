@@ -8,15 +8,17 @@ the CDR payloads as they travelled (the process set) or as the process set would
 (``--in-process``). A message's log time is when the recorder received it (wall clock, ns);
 its header stamp is the planning step (:mod:`rovergate.messages`).
 
-The transport hands a payload over and goes on: a thread of the recorder sends it down a
-pipe to the writer, a process of its own (:mod:`ecosystem.bag_writer`), so that rosbags'
-copies never hold the mission's Python lock. Any MCAP reader opens the bag (``mcap`` with
-``mcap-ros2-support``, Foxglove, ``ros2 bag`` with the MCAP plugin); ``rovergate replay
-OUT/bag`` publishes it again over Zenoh.
+The transport hands a payload over and goes on; a thread of the recorder writes it (the
+process set: the mission manager's own thread mostly waits) or sends it down a pipe to a
+writer process (in process: rosbags' copies would hold the Python lock the loop needs), at
+the lowest priority either way (:mod:`ecosystem.bag_writer`). Any MCAP reader opens the bag
+(``mcap`` with ``mcap-ros2-support``, Foxglove, ``ros2 bag`` with the MCAP plugin);
+``rovergate replay OUT/bag`` publishes it again over Zenoh.
 
-The writer closes the bag when its input ends, which it does when the mission's process
-dies in any way too: a mission manager killed outright leaves a closed bag of what it had
-sent. A resumed mission records into ``OUT/bag.2`` (and so on), beside the first.
+The writer process closes the bag when its input ends, which it does when the mission's
+process dies in any way too. A process-set mission's manager killed outright leaves a bag
+without its summary and ``metadata.yaml`` (MCAP's streaming readers read its finished
+chunks); its ``--resume`` records into ``OUT/bag.2`` (and so on), beside the first.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import queue
 import shutil
 import subprocess
@@ -33,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from ecosystem.bag_writer import HEADER
+from ecosystem.bag_writer import HEADER, BagFile
 from ecosystem.taps import Payload, tapped_topics
 from rovergate.keys import Keys
 
@@ -48,6 +51,7 @@ MAX_PENDING_BYTES = 1 << 30
 than the mission's memory grown without bound (a disk far slower than the mission)."""
 
 Compression = Literal["zstd", "none"]
+Writer = Literal["thread", "process"]
 
 
 def ros_topic(keys: Keys, topic: str) -> str:
@@ -84,6 +88,9 @@ class RecordStats:
     write_s: float = 0.0
     """Seconds the writer process spent writing (compression included)."""
     compression: str = "none"
+    writer: str = "thread"
+    """Where the bag was written: the recorder's thread (the process set's mission manager)
+    or a process of its own (an in-process mission)."""
     dropped: int = 0
     """Messages not recorded because the writer fell more than MAX_PENDING_BYTES behind."""
     error: str | None = None
@@ -93,27 +100,37 @@ class RecordStats:
 class FlightRecorder:
     """A :class:`ecosystem.taps.Tap` that records every message into a rosbag2 MCAP bag.
 
-    The mission's side only queues each payload; a thread of its own hands it down a pipe to
-    the writer process (:mod:`ecosystem.bag_writer`), which writes the bag with rosbags."""
+    The transport's side only queues each payload; a thread of the recorder takes it from
+    there. With ``writer="thread"`` that thread writes the bag itself (the process set's
+    mission manager, whose own thread mostly waits); with ``writer="process"`` it hands the
+    bytes down a pipe to :mod:`ecosystem.bag_writer`'s process (an in-process mission, whose
+    loop needs Python's lock that rosbags' copies would hold)."""
 
     def __init__(self, directory: Path, namespace: str = "rover",
-                 compression: Compression = "none") -> None:
+                 compression: Compression = "none", writer: Writer = "thread") -> None:
         if compression not in ("zstd", "none"):
             raise ValueError(f"record compression {compression!r}: choose zstd or none")
+        if writer not in ("thread", "process"):
+            raise ValueError(f"writer {writer!r}: choose thread or process")
         self.directory = Path(directory)
         self.directory.parent.mkdir(parents=True, exist_ok=True)
         if self.directory.exists():
             raise FileExistsError(f"{self.directory} exists; a bag is written only once")
         self._topics = tapped_topics()
         self._index = {t: i for i, t in enumerate(self._topics)}
-        # Its own process group, so that a Ctrl-C to the mission's terminal does not reach
-        # it (the mission ends it), but the mission's session: Linux schedules a session as
-        # a group (autogroup), and in a session of its own the writer's low priority would
-        # count for nothing against the mission's processes.
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "ecosystem.bag_writer", str(self.directory), namespace,
-             compression], stdin=subprocess.PIPE, stdout=subprocess.PIPE, process_group=0)
-        self.stats = RecordStats(str(self.directory), compression=compression)
+        self._bag: BagFile | None = None
+        self._proc: subprocess.Popen | None = None
+        if writer == "thread":
+            self._bag = BagFile(self.directory, namespace, compression)
+        else:
+            # Its own process group, so that a Ctrl-C to the mission's terminal does not
+            # reach it (the mission ends it), but the mission's session: Linux schedules a
+            # session as a group (autogroup), and in a session of its own the writer's low
+            # priority would count for nothing against the mission.
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "ecosystem.bag_writer", str(self.directory), namespace,
+                 compression], stdin=subprocess.PIPE, stdout=subprocess.PIPE, process_group=0)
+        self.stats = RecordStats(str(self.directory), compression=compression, writer=writer)
         self._queue: queue.SimpleQueue[tuple[int, Payload, int] | threading.Event | None] = \
             queue.SimpleQueue()
         self._error: str | None = None
@@ -141,10 +158,14 @@ class FlightRecorder:
         self._queue.put((index, payload, time_ns))
 
     def _send(self) -> None:
-        pipe = self._proc.stdin
+        if self._bag is not None:
+            # The lowest priority for this thread alone (Linux: a thread id is a process id
+            # to setpriority): it takes the CPU the loop leaves idle, not the loop's.
+            with contextlib.suppress(OSError, AttributeError):
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         while (item := self._queue.get()) is not None:
             if isinstance(item, threading.Event):
-                item.set()  # flush(): everything before it is in the pipe
+                item.set()  # flush(): everything before it is written or in the pipe
                 continue
             index, payload, time_ns = item
             with self._lock:
@@ -157,44 +178,40 @@ class FlightRecorder:
                 self._error = f"a {self._topics[index]} message did not encode: {exc}"
                 log.error("the flight recorder stopped: %s", self._error)
                 continue
+            if self._bag is not None:
+                self._bag.write(index, time_ns, data)
+                if self._bag.error is not None:
+                    self._error = self._bag.error
+                    log.error("the flight recorder cannot write %s: %s", self.directory,
+                              self._error)
+                continue
             try:  # the pipe's writes release Python's lock: the loop goes on meanwhile
-                pipe.write(HEADER.pack(index, time_ns, len(data)))
-                pipe.write(data)
-                pipe.flush()  # in the pipe, not in this process: a killed mission loses none
+                self._proc.stdin.write(HEADER.pack(index, time_ns, len(data)))
+                self._proc.stdin.write(data)
+                self._proc.stdin.flush()  # in the pipe, not here: a killed mission loses none
             except OSError as exc:
                 self._error = f"the bag writer process ended ({exc})"
                 log.error("the flight recorder cannot write %s: %s", self.directory,
                           self._error)
-        with contextlib.suppress(OSError):
-            pipe.close()  # the end of the input: the writer closes the bag
+        if self._proc is not None:
+            with contextlib.suppress(OSError):
+                self._proc.stdin.close()  # the end of the input: the writer closes the bag
 
     def flush(self, timeout_s: float = 60.0) -> bool:
-        """Wait until every message put so far is in the writer's pipe (True) or
-        ``timeout_s`` passed (False)."""
+        """Wait until every message put so far is written (or in the writer process's pipe):
+        True, or False when ``timeout_s`` passed first."""
         done = threading.Event()
         self._queue.put(done)
         return done.wait(timeout_s)
 
     def close(self) -> RecordStats:
-        """Send what is pending, let the writer close the bag; what it wrote."""
+        """Write what is pending, the bag's summary and ``metadata.yaml``; what it holds."""
         if self._closed:
             return self.stats
         self._closed = True
         self._queue.put(None)
         self._thread.join()
-        self._proc.stdin = None  # closed by the sender: communicate() only reads
-        try:
-            out, _ = self._proc.communicate(timeout=CLOSE_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            out, _ = self._proc.communicate()
-            self._error = self._error or (f"the bag writer did not finish within "
-                                          f"{CLOSE_TIMEOUT_S:.0f} s")
-        try:
-            written = json.loads(out.decode().strip().splitlines()[-1])
-        except (ValueError, IndexError):
-            written = {"error": f"the bag writer exited with code {self._proc.returncode} "
-                                "and no summary"}
+        written = self._bag.close() if self._bag is not None else self._close_process()
         self.stats.messages = written.get("messages", {})
         self.stats.payload_bytes = written.get("payload_bytes", 0)
         self.stats.file_bytes = written.get("file_bytes", 0)
@@ -207,3 +224,18 @@ class FlightRecorder:
         if error is not None:
             raise RuntimeError(f"the flight recorder stopped early: {error}")
         return self.stats
+
+    def _close_process(self) -> dict:
+        self._proc.stdin = None  # closed by the sender: communicate() only reads
+        try:
+            out, _ = self._proc.communicate(timeout=CLOSE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            out, _ = self._proc.communicate()
+            self._error = self._error or (f"the bag writer did not finish within "
+                                          f"{CLOSE_TIMEOUT_S:.0f} s")
+        try:
+            return json.loads(out.decode().strip().splitlines()[-1])
+        except (ValueError, IndexError):
+            return {"error": f"the bag writer exited with code {self._proc.returncode} and "
+                             "no summary"}

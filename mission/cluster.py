@@ -43,8 +43,13 @@ CONNECT_TIMEOUT_S = 30
 def run_remote(job: tuple[dict, str, str], torch_threads: int
                ) -> tuple[str, float, str | None, dict[str, bytes]]:
     """On a worker: run one mission into a temporary directory; its files as bytes."""
-    from mission.study import _init_worker, _run_one
-    _init_worker(torch_threads)
+    import torch
+
+    from mission.study import _run_one
+    from rovergate.runtime import tune_allocator
+    tune_allocator()
+    torch.set_num_threads(torch_threads)  # as the local pool's workers (the worker's log
+    # level is the worker's own business)
     mission, run_id, runs_dir = job
     final = str(Path(runs_dir) / run_id)  # where the study keeps it
     with tempfile.TemporaryDirectory(prefix="rovergate-run-") as tmp:

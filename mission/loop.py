@@ -180,8 +180,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
     return record
 
 
-def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False
-               ) -> tuple[Taps, FlightRecorder | None]:
+def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False,
+               writer: str = "thread") -> tuple[Taps, FlightRecorder | None]:
     """The taps of a mission (:mod:`ecosystem.taps`): the flight recorder unless
     ``--no-record``, the live view with ``--viz``, the ROS 2 graph with ``--ros2``. Returns
     the taps and the recorder (None when not recording)."""
@@ -192,7 +192,7 @@ def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False
         if cfg.record:
             from ecosystem.recorder import FlightRecorder, fresh_bag_dir
             recorder = FlightRecorder(fresh_bag_dir(out, resumed), cfg.session.namespace,
-                                      cfg.record_compression)
+                                      cfg.record_compression, writer)
             taps.taps.append(recorder)
         if cfg.viz:
             from ecosystem.live_view import LiveView
@@ -216,7 +216,8 @@ def _recording(recorder: FlightRecorder | None) -> dict:
 
 def run_in_process(cfg: MissionConfig, on_step: OnStep | None = None) -> MissionRecord:
     """The mission with every module in this process, without Zenoh (the study's runs)."""
-    taps, recorder = _open_taps(cfg, Path(cfg.out))
+    # The bag is written by a process of its own: the loop needs this process's Python lock.
+    taps, recorder = _open_taps(cfg, Path(cfg.out), writer="process")
     try:
         record = run_mission(cfg, InProcessTransport(cfg, taps), on_step)
     finally:

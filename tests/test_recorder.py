@@ -83,6 +83,7 @@ def test_a_process_set_mission_records_every_topic_into_an_mcap_bag(tmp_path: Pa
     counts = {t: len(got[n]) for t, n in names.items()}
     assert counts == metrics["recording"]["messages"]
     assert counts["status"] == 12  # ticks 0..10 and the final `done`
+    assert metrics["recording"]["writer"] == "thread"  # the mission manager's own thread
 
 
 @pytest.fixture(scope="module")
@@ -98,6 +99,7 @@ def test_an_in_process_mission_records_what_the_process_set_would_send(recorded:
     metrics = read_metrics(recorded)
     rec = metrics["recording"]
     assert rec["compression"] == "zstd" and rec["file_bytes"] < rec["payload_bytes"]
+    assert rec["writer"] == "process"  # off the loop's Python lock
     got = _decoded(recorded / "bag", [PLANNER, "/rover/sensor/pose", "/rover/sensor/depth"])
     assert [m.header.stamp.sec for m in got[PLANNER]] == [0, 1, 2]
     pose = got["/rover/sensor/pose"][-1]
@@ -203,7 +205,7 @@ def test_a_recorder_whose_writer_dies_says_so_and_does_not_hold_the_mission(tmp_
     from ecosystem.recorder import FlightRecorder
     from rovergate.messages import encode
     from rovergate.types import MissionStatus
-    recorder = FlightRecorder(tmp_path / "bag")
+    recorder = FlightRecorder(tmp_path / "bag", writer="process")
     payload = encode("status", MissionStatus(0, 5, "running", "obs", 0.0, 0))
     recorder.put("status", payload, 1)
     recorder._proc.kill()  # the writer process dies (out of memory, killed, ...)
@@ -216,14 +218,15 @@ def test_a_recorder_whose_writer_dies_says_so_and_does_not_hold_the_mission(tmp_
     assert recorder.stats.error
 
 
-def test_a_killed_mission_leaves_a_closed_bag(tmp_path: Path):
-    """The writer closes the bag when its input ends, however the mission's process ends."""
+def test_a_killed_in_process_mission_leaves_a_closed_bag(tmp_path: Path):
+    """The writer process closes the bag when its input ends, however the mission's process
+    ends."""
     import signal
     import sys
     code = ("import sys, time; from pathlib import Path; "
             "from ecosystem.recorder import FlightRecorder; "
             "from rovergate.messages import encode; from rovergate.types import MissionStatus; "
-            "r = FlightRecorder(Path(sys.argv[1])); "
+            "r = FlightRecorder(Path(sys.argv[1]), writer='process'); "
             "[r.put('status', encode('status', MissionStatus(s, 9, 'running', 'obs', 0.0, 0)),"
             " s) for s in range(5)]; r.flush(); print(r._proc.pid, flush=True); "
             "time.sleep(600)")
@@ -239,6 +242,20 @@ def test_a_killed_mission_leaves_a_closed_bag(tmp_path: Path):
     assert wait_gone(writer, 60), "the bag writer did not exit within 60 s of the mission"
     with Reader(tmp_path / "bag") as reader:
         assert [c.msgcount for c in reader.connections if c.topic.endswith("status")] == [5]
+
+
+def test_a_recorder_thread_that_cannot_write_says_so_in_its_stats(tmp_path: Path):
+    from ecosystem.recorder import FlightRecorder
+    from rovergate.messages import encode
+    from rovergate.types import MissionStatus
+    recorder = FlightRecorder(tmp_path / "bag", writer="thread")
+    payload = encode("status", MissionStatus(0, 5, "running", "obs", 0.0, 0))
+    recorder.put("status", payload, 1)
+    assert recorder.flush()
+    recorder._bag._writer.storage.bio.close()  # the file goes away under it (a full disk)
+    with pytest.raises(RuntimeError, match="stopped early"):
+        recorder.close()
+    assert recorder.stats.error == "ValueError: I/O operation on closed file"
 
 
 def test_replay_that_would_reach_no_one_is_refused(recorded: Path):
