@@ -57,6 +57,14 @@ def run_cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
                           timeout=timeout)
 
 
+def recorded_mission(out: Path, steps: int, *flags: str) -> Path:
+    """An in-process mission of ``steps`` steps in ``out`` (recorded, as every mission is);
+    returns its bag's directory."""
+    r = run_cli("run", "--in-process", "--steps", str(steps), "--out", str(out), *flags)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return out / "bag"
+
+
 class Waiter:
     """A condition that callbacks notify and a test waits on, with a deadline that says what
     it awaited (never a fixed sleep)."""

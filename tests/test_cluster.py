@@ -92,7 +92,7 @@ def test_a_study_on_a_cluster_writes_the_local_pools_runs_even_when_a_worker_die
             (run / "config.json").read_text()
 
 
-@pytest.mark.parametrize("address, says", [("127.0.0.1:8786", "give the scheduler's address"),
+@pytest.mark.parametrize("address, says", [("scheduler-host", "give the scheduler's address"),
                                             (None, "no Dask scheduler answered")])
 def test_a_cluster_that_cannot_be_used_is_one_line(monkeypatch, address, says):
     from mission import cluster

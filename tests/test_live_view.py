@@ -16,7 +16,7 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from websockets.sync.client import ClientConnection, connect
 
-from tests.conftest import ROVERGATE
+from tests.conftest import recorded_mission
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 MESSAGE_DATA = 0x01
@@ -137,11 +137,8 @@ def test_the_committed_layout_is_the_generated_one():
 
 @pytest.mark.e2e
 def test_replay_serves_a_recorded_mission_to_foxglove(launch, tmp_path: Path):
-    import subprocess
     out = tmp_path / "run"
-    r = subprocess.run([*ROVERGATE, "run", "--in-process", "--steps", "2", "--out", str(out),
-                        "--no-progress"], capture_output=True, text=True, timeout=240)
-    assert r.returncode == 0, r.stderr[-2000:]
+    recorded_mission(out, 2)
     replay = launch("replay", str(out / "bag"), "--viz", "--viz-port", "0", "--listen",
                     "--speed", "0", "--wait-subscriber-s", "120", "--topics", PLANNER)
     port = int(replay.wait_for_line(r"live view: open ws://127\.0\.0\.1:(\d+)").group(1))

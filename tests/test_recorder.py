@@ -19,7 +19,7 @@ from rovergate.config import SessionConfig
 from rovergate.graph import TOPICS
 from rovergate.keys import Keys
 from rovergate.session import free_loopback_port, zenoh_config
-from tests.conftest import ROVERGATE, Waiter, read_metrics, run_cli
+from tests.conftest import ROVERGATE, Waiter, read_metrics, recorded_mission, run_cli
 
 PLANNER = "/rover/map/occupancy/planner"
 
@@ -89,9 +89,7 @@ def test_a_process_set_mission_records_every_topic_into_an_mcap_bag(tmp_path: Pa
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("recorded") / "run"
-    r = run_cli("run", "--in-process", "--steps", "3", "--out", str(out), "--platform",
-                "flyer", "--record-compression", "zstd")
-    assert r.returncode == 0, r.stderr[-3000:]
+    recorded_mission(out, 3, "--platform", "flyer", "--record-compression", "zstd")
     return out
 
 

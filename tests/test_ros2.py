@@ -132,15 +132,11 @@ def test_a_ros2_subscriber_receives_the_planner_map_through_a_router(launch, tmp
 
 @pytest.mark.e2e
 def test_a_replay_reaches_the_ros2_graph_with_its_own_sequence(launch, tmp_path: Path):
-    import subprocess
-
     from rosbags.rosbag2 import Reader
 
-    from tests.conftest import ROVERGATE
+    from tests.conftest import recorded_mission
     out = tmp_path / "run"
-    r = subprocess.run([*ROVERGATE, "run", "--in-process", "--steps", "3", "--out", str(out),
-                        "--no-progress"], capture_output=True, text=True, timeout=240)
-    assert r.returncode == 0, r.stderr[-2000:]
+    recorded_mission(out, 3)
     with Reader(out / "bag") as reader:
         maps = [bytes(d) for c, _, d in reader.messages()
                 if c.topic == "/rover/map/occupancy/planner"]
