@@ -94,12 +94,18 @@ def test_the_example_mission_file_runs_and_its_commands_are_acknowledged(tmp_pat
             (out / "ground" / "received.jsonl").read_text().splitlines()]
     acks = {row["verb"]: row for row in rows if row["kind"] == "command_ack"}
     assert set(acks) == {"set", "condition"}
-    assert all(a["state"] == "executed" for a in acks.values()), acks
     executed = {c["verb"]: c["step"] for c in metrics["link"]["commands"]}
     assert executed == {v: a["executed_step"] for v, a in acks.items()}
     assert json.loads((out / "ground" / "unsent.json").read_text()) == []
-    # The condition command took effect: the gate's configuration after it says so.
-    assert json.loads((out / "config.2.json").read_text())["condition"] == "gated"
+    # The first command has windows to spare. The second is sent when the ground sees the
+    # second window open, in wall time; on a machine so loaded that it reached the rover only
+    # after the last step, it is acknowledged as rejected, saying so, and changed nothing.
+    assert acks["set"]["state"] == "executed", acks
+    if acks["condition"]["state"] == "executed":
+        # It took effect: the gate's configuration after it says so.
+        assert json.loads((out / "config.2.json").read_text())["condition"] == "gated"
+    else:
+        assert "the mission had ended" in acks["condition"]["detail"], acks
 
 
 @pytest.mark.e2e
@@ -108,4 +114,7 @@ def test_the_python_api_example_runs_a_mission_and_reads_its_record(tmp_path: Pa
                         "12", "--out", str(tmp_path / "api")], capture_output=True, text=True,
                        timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert "final coverage" in r.stdout and r.stdout.count("executed at step") == 3, r.stdout
+    acks = [line for line in r.stdout.splitlines() if line.startswith("command ")]
+    assert "final coverage" in r.stdout and len(acks) == 3, r.stdout
+    # Each ran, or (a window command on a loaded machine) came after the end and says so.
+    assert all(" executed at step " in a or "the mission had ended" in a for a in acks), acks
