@@ -36,29 +36,42 @@ def _read_exact(stream, n: int) -> bytes | None:
     return data if data is not None and len(data) == n else None
 
 
-class BagFile:
-    """A rosbag2 bag with MCAP storage of the tapped topics, written with rosbags: what both
-    of the recorder's writers (its thread, or this module's process) write through."""
+def connections(namespace: str) -> list[dict[str, str]]:
+    """The bag's connections, one per tapped topic in :func:`ecosystem.taps.tapped_topics`'s
+    order: its graph name, ROS 2 topic, type, ``ros2msg`` definition and RIHS01 hash (the
+    writer process is given them, so that it never builds the type store)."""
+    from ecosystem.taps import tapped_topics
+    from rovergate.graph import TOPICS
+    from rovergate.keys import Keys
+    from rovergate.messages import TYPESTORE
+    keys = Keys(namespace)
+    out = []
+    for t in tapped_topics():
+        msgtype = TOPICS[t].msgtype
+        out.append({"name": t, "topic": "/" + keys.key(t), "msgtype": msgtype,
+                    "msgdef": TYPESTORE.generate_msgdef(msgtype, ros_version=2)[0],
+                    "rihs01": TYPESTORE.hash_rihs01(msgtype)})
+    return out
 
-    def __init__(self, directory: Path, namespace: str, compression: str) -> None:
+
+class BagFile:
+    """A rosbag2 bag with MCAP storage of the given connections (:func:`connections`),
+    written with rosbags: what both of the recorder's writers (its thread, or this module's
+    process) write through."""
+
+    def __init__(self, directory: Path, specs: list[dict[str, str]], compression: str) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
-        from ecosystem.taps import tapped_topics
-        from rovergate.graph import TOPICS
-        from rovergate.keys import Keys
-        from rovergate.messages import TYPESTORE
-
         self.directory = Path(directory)
-        self.topics = tapped_topics()
-        keys = Keys(namespace)
+        self.topics = [c["name"] for c in specs]
         self._writer = Writer(self.directory, version=9, storage_plugin=StoragePlugin.MCAP)
         if compression == "zstd":
             self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self._writer.open()
-        self._connections = [self._writer.add_connection("/" + keys.key(t), TOPICS[t].msgtype,
-                                                         typestore=TYPESTORE)
-                             for t in self.topics]
+        self._connections = [self._writer.add_connection(c["topic"], c["msgtype"],
+                                                         msgdef=c["msgdef"], rihs01=c["rihs01"])
+                             for c in specs]
         self.counts: Counter[str] = Counter()
         self.payload_bytes = 0
         self.write_s = 0.0
@@ -93,12 +106,12 @@ class BagFile:
 
 
 def main(argv: list[str]) -> int:
-    directory, namespace, compression = Path(argv[0]), argv[1], argv[2]
+    directory, compression = Path(argv[0]), argv[1]
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError):
         os.setpriority(os.PRIO_PROCESS, 0, 19)
-    bag = BagFile(directory, namespace, compression)
     stream = sys.stdin.buffer
+    bag = BagFile(directory, json.loads(stream.readline()), compression)
     while (header := _read_exact(stream, HEADER.size)) is not None:
         index, time_ns, length = HEADER.unpack(header)
         payload = _read_exact(stream, length)

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from ecosystem.bag_writer import HEADER, BagFile
+from ecosystem.bag_writer import HEADER, BagFile, connections
 from ecosystem.taps import Payload, tapped_topics
 from rovergate.keys import Keys
 
@@ -120,16 +120,18 @@ class FlightRecorder:
         self._index = {t: i for i, t in enumerate(self._topics)}
         self._bag: BagFile | None = None
         self._proc: subprocess.Popen | None = None
+        specs = connections(namespace)
         if writer == "thread":
-            self._bag = BagFile(self.directory, namespace, compression)
+            self._bag = BagFile(self.directory, specs, compression)
         else:
             # Its own process group, so that a Ctrl-C to the mission's terminal does not
             # reach it (the mission ends it), but the mission's session: Linux schedules a
             # session as a group (autogroup), and in a session of its own the writer's low
             # priority would count for nothing against the mission.
             self._proc = subprocess.Popen(
-                [sys.executable, "-m", "ecosystem.bag_writer", str(self.directory), namespace,
+                [sys.executable, "-m", "ecosystem.bag_writer", str(self.directory),
                  compression], stdin=subprocess.PIPE, stdout=subprocess.PIPE, process_group=0)
+            self._proc.stdin.write(json.dumps(specs).encode() + b"\n")
         self.stats = RecordStats(str(self.directory), compression=compression, writer=writer)
         self._queue: queue.SimpleQueue[tuple[int, Payload, int] | threading.Event | None] = \
             queue.SimpleQueue()
