@@ -19,7 +19,7 @@ from rovergate.session import free_loopback_port
 
 ROVERGATE = [sys.executable, "-m", "mission.cli"]
 STUDY = ["--scenes", "arch_field", "--starts", "a", "--conditions", "obs", "learned",
-         "--reps", "2", "--filter-reps", "2", "--steps", "10", "--no-progress"]
+         "--reps", "2", "--filter-reps", "2", "--steps", "6", "--no-progress"]
 
 
 def _dask(*args: str) -> subprocess.Popen:
