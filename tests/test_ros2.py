@@ -155,10 +155,11 @@ def test_a_replay_reaches_the_ros2_graph_with_its_own_sequence(launch, tmp_path:
     assert [ros2.parse_attachment(a)[0] for _, _, a in received.samples] == [1, 2, 3]
 
 
-@pytest.mark.e2e
-def test_without_a_router_the_mission_does_not_start(tmp_path: Path):
-    from tests.conftest import run_cli
+def test_without_a_router_the_bridge_does_not_start():
+    """`run --ros2` opens the bridge before anything else starts; with no router at the
+    endpoint it is one line (the command line prints it and exits with 2)."""
+    from rovergate.errors import ConfigError
     port = free_loopback_port()  # nothing listens there
-    r = run_cli("run", "--in-process", "--steps", "1", "--out", str(tmp_path / "run"),
-                "--ros2", "--ros2-router", f"tcp/127.0.0.1:{port}", timeout=120)
-    assert r.returncode == 2 and "no ROS 2 Zenoh router" in r.stderr, r.stderr[-2000:]
+    with pytest.raises(ConfigError, match="no ROS 2 Zenoh router at") as err:
+        ros2.Ros2Bridge(f"tcp/127.0.0.1:{port}", timeout_s=1.0)
+    assert "\n" not in str(err.value)
