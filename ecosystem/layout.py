@@ -94,7 +94,8 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
                 track.append(decode("base_pose", bytes(data))[1].position[:2])
             else:
                 last[topic] = bytes(data)
-    planner = decode("planner_map", last["planner_map"])[1].points
+    map_step, planner_map = decode("planner_map", last["planner_map"])
+    planner = planner_map.points
     surface = decode("surface", last["surface"])[1]
     step, depth = decode("depth", last["depth"])
     status = last["status"]
@@ -108,7 +109,7 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
     xy = np.array(track)
     ax.plot(xy[:, 0], xy[:, 1], "-", color="black", lw=1.5, label="base_link (from /tf)")
     ax.set(title=f"3D panel, from above: {TOPICS['planner_map'].suffix}, step "
-                 f"{planner_step(last['planner_map'])}", xlabel="x (m)", ylabel="y (m)",
+                 f"{map_step}", xlabel="x (m)", ylabel="y (m)",
            aspect="equal")
     cb = fig.colorbar(sc, ax=ax, shrink=0.6, ticks=[0, 1, 2, 3])
     cb.ax.set_yticklabels(["observed", "predicted", "oracle FN", "truth"])
@@ -132,11 +133,6 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
-
-
-def planner_step(payload: bytes) -> int:
-    from rovergate.messages import decode
-    return decode("planner_map", payload)[0]
 
 
 def main() -> None:
