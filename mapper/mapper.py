@@ -59,9 +59,11 @@ class Mapper:
     """
 
     def __init__(self, cfg: MapperConfig, bounds_m: tuple[float, ...] | None = None,
-                 checkpoint: Checkpoint | None = None, precision: str = "float32") -> None:
-        """``precision``: the model's arithmetic (:class:`mapper.model.OccupancyPredictor`;
-        missions take ``MapperConfig.precision``)."""
+                 checkpoint: Checkpoint | None = None, precision: str = "float32",
+                 engine: str = "openvino") -> None:
+        """``precision`` and ``engine``: the model's arithmetic and runtime
+        (:class:`mapper.model.OccupancyPredictor`; missions take ``MapperConfig.precision``
+        and ``MapperConfig.engine``)."""
         self.cfg = cfg
         self.surface = VoxelSurface(cfg.voxel_m)
         self.grid: OccupancyGrid | None = None
@@ -71,12 +73,12 @@ class Mapper:
                 raise ValueError("the learned prediction needs the box of interest")
             self.grid = OccupancyGrid(GridSpec.around(bounds_m, checkpoint.window.voxel_m))
             from mapper.model import OccupancyPredictor
-            self.predictor = OccupancyPredictor(checkpoint, self.grid, precision)
+            self.predictor = OccupancyPredictor(checkpoint, self.grid, precision, engine)
 
     @classmethod
     def for_mission(cls, cfg: MissionConfig) -> Mapper:
         return cls(cfg.mapper, cfg.scene.bounds_m, mission_checkpoint(cfg),
-                   cfg.mapper.precision)
+                   cfg.mapper.precision, cfg.mapper.engine)
 
     def integrate(self, frame: SensorFrame) -> None:
         """Take one frame into S_t, the grid and the model's prediction, without reading the

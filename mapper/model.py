@@ -17,7 +17,6 @@ window on two CPU cores, and one window per step covers what the camera can see.
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 from dataclasses import asdict, dataclass
@@ -204,10 +203,6 @@ def weights_sha256(model: nn.Module) -> str:
 
 # ----------------------------------------------------------------------------- inference
 
-#: The arithmetic the model may run in (OccupancyPredictor's ``precision``).
-PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
-
-
 def to_float16(values: np.ndarray) -> np.ndarray:
     """``values.astype(np.float16)`` of a float32 array, to the bit: both round to nearest,
     ties to even, but numpy converts the results that are float16 subnormals (the many
@@ -225,22 +220,18 @@ class OccupancyPredictor:
     """
 
     def __init__(self, checkpoint: Checkpoint, grid: OccupancyGrid,
-                 precision: str = "float32") -> None:
-        """``precision``: the arithmetic of the model's pass. ``float32`` is the trained
-        model's own; missions take ``MapperConfig.precision``, bfloat16 by default, which
-        gives the study's numbers. ``bfloat16`` runs it about 1.7 times faster
-        on a CPU with native bfloat16 (AVX512-BF16 or AMX), and moves the numbers a little:
-        on flyer missions' windows, probabilities by at most 0.015 and the 0.5 decision of
-        about one covered voxel in 8000; most predicted points' sub-voxel heights move
-        slightly, under 0.5% by more than 0.2 m. Without native support it is slower than
-        float32."""
+                 precision: str = "float32", engine: str = "openvino") -> None:
+        """``engine`` and ``precision``: the runtime and arithmetic of the model's pass
+        (:mod:`mapper.engines`; missions take ``MapperConfig.engine`` and
+        ``MapperConfig.precision``, OpenVINO in float32 by default). ``bfloat16`` runs it
+        about 1.7 times faster on a CPU with native bfloat16 (AVX512-BF16 or AMX), and moves
+        the numbers a little: on flyer missions' windows, probabilities by at most 0.015 and
+        the 0.5 decision of about one covered voxel in 8000. Without native support it is many
+        times slower than float32 in torch, and refused by OpenVINO."""
         if abs(checkpoint.window.voxel_m - grid.spec.voxel_m) > 1e-9:
             raise ValueError("the grid's voxel size differs from the model's")
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision {precision!r} is not one of {', '.join(PRECISIONS)}")
-        self.dtype = PRECISIONS[precision]
-        self.model = (checkpoint.model if self.dtype == torch.float32
-                      else copy.deepcopy(checkpoint.model).to(self.dtype))
+        from mapper.engines import make_engine
+        self.engine = make_engine(checkpoint, engine, precision)
         self.window = checkpoint.window
         self.grid = grid
         self.probability = np.zeros(grid.spec.shape, dtype=np.float16)
@@ -248,9 +239,7 @@ class OccupancyPredictor:
         self.covered = np.zeros(grid.spec.shape, dtype=bool)
         """(nx, ny, nz) bool: voxels that have been inside a prediction window."""
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # start and state predicted
-        self._x: np.ndarray | None = None
 
-    @torch.inference_mode()
     def update(self, camera_m: np.ndarray) -> None:
         """Predict the window around ``camera_m`` from the grid as it is now."""
         w = self.window
@@ -263,22 +252,15 @@ class OccupancyPredictor:
             # and they are in ``probability`` already.
             return
         self._last = (start, state)
-        x = self._input(w)
-        x[:3] = encode_state(state)
-        logits = self.model(torch.from_numpy(x)[None].to(self.dtype))[0, 0].to(
-            torch.float32).numpy()
-        prob = to_float16(1.0 / (1.0 + np.exp(-logits)))
+        logits = self.engine(state)
+        # The sigmoid in float64: numpy's exp takes another SIMD path on each CPU family, and
+        # its float64 results differ by less than float16's rounding ever sees (its float32
+        # ones would reach the float16 probabilities below AVX2).
+        prob = to_float16(1.0 / (1.0 + np.exp(-logits.astype(np.float64))))
         where = overlap(start, w.size, self.grid.spec.shape)
         if where is not None:
             self.probability[where[0]] = prob[where[1]]
             self.covered[where[0]] = True
-
-    def _input(self, w: WindowSpec) -> np.ndarray:
-        """The network's input buffer: channels 3.. (the position in the window) never change,
-        so they are written once, and each update writes the state's channels."""
-        if self._x is None:
-            self._x = encode(np.zeros(w.size, dtype=np.uint8), w.below)
-        return self._x
 
     def _at_least(self, threshold: float) -> np.ndarray:
         """(nx, ny, nz) bool: ``probability >= threshold``. The probabilities are sigmoid

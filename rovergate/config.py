@@ -162,11 +162,15 @@ class MapperConfig:
     """Run the learned occupancy model: auto (when the condition uses it), on, or off."""
     checkpoint: str = ""
     """Occupancy model weights. Empty: the checkpoint shipped in the package."""
-    precision: str = "bfloat16"
-    """The model's arithmetic: bfloat16 (1.7 to 1.8 times faster on the 2-core machine, whose
-    CPU has native bfloat16; about one covered voxel in 8000 lands on the other side of 0.5)
-    or float32 (the trained model's own arithmetic; use it on a CPU without native
-    bfloat16, where bfloat16 is slower)."""
+    precision: str = "float32"
+    """The model's arithmetic: float32 (the trained model's own; the same on every CPU as far
+    as the CPU's kernels allow, see the README) or bfloat16 (faster only on a CPU with native
+    bfloat16, AVX512-BF16 or AMX; about one covered voxel in 8000 lands on the other side of
+    0.5; many times slower in torch without native support, and refused by openvino)."""
+    engine: str = "openvino"
+    """The runtime of the model's pass: openvino (the network compiled for this CPU, about
+    1.5 times faster than torch on an AVX2 CPU with one thread) or torch (the network as
+    trained, in PyTorch)."""
 
 
 @dataclass
@@ -460,6 +464,9 @@ def check_values(cfg: MissionConfig) -> None:
     if cfg.mapper.precision not in ("float32", "bfloat16"):
         raise ConfigError(f"--mapper.precision must be float32 or bfloat16, got "
                           f"{cfg.mapper.precision!r}")
+    if cfg.mapper.engine not in ("openvino", "torch"):
+        raise ConfigError(f"--mapper.engine must be openvino or torch, got "
+                          f"{cfg.mapper.engine!r}")
     if not cfg.sensor.max_range_m > cfg.sensor.min_range_m:
         raise ConfigError(f"--sensor.max-range-m ({cfg.sensor.max_range_m}) must exceed "
                           f"--sensor.min-range-m ({cfg.sensor.min_range_m})")

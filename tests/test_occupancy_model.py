@@ -27,7 +27,7 @@ from mapper.model import (
     shipped_checkpoint,
 )
 from mapper.training import TrainConfig, gather_world, make_batch, masked_loss, train
-from rovergate.errors import CheckpointError
+from rovergate.errors import CheckpointError, ConfigError
 from rovergate.geometry import R_BODY_OPTICAL
 from rovergate.types import CameraIntrinsics
 
@@ -297,8 +297,8 @@ def test_prediction_reads_thresholds_exactly_and_skips_an_unchanged_window():
     for threshold in (0.5, 0.25, 0.3, 1.0, 0.0):
         assert np.array_equal(predictor._at_least(threshold), p >= threshold), threshold
     calls = []
-    model = predictor.model
-    predictor.model = lambda x: calls.append(1) or model(x)
+    engine = predictor.engine
+    predictor.engine = lambda state: calls.append(1) or engine(state)
     camera = spec.centres(np.array([[w.size[0] // 2, w.size[1] // 2, w.below]]))[0]
     predictor.update(camera)
     first = predictor.probability.copy()
@@ -326,19 +326,74 @@ def test_probabilities_round_to_float16_as_numpy_rounds_them():
     assert np.array_equal(to_float16(v).view(np.uint16), v.astype(np.float16).view(np.uint16))
 
 
+def _ground_window(w: WindowSpec, seed: int = 0) -> np.ndarray:
+    """A state window as a mission makes one: ground under the camera seen over half the
+    window, free space above it, a few scattered returns, unknown elsewhere."""
+    state = np.zeros(w.size, dtype=np.uint8)
+    state[: w.size[0] // 2, :, w.below - 4] = OCCUPIED
+    state[: w.size[0] // 2, :, w.below - 3:] = FREE
+    rng = np.random.default_rng(seed)
+    ijk = rng.integers(0, w.size, size=(300, 3))
+    state[tuple(ijk.T)] |= OCCUPIED
+    return state
+
+
+def test_the_openvino_engine_computes_the_trained_network():
+    """The default engine (its stem folded over the constant channels, its head folded into the
+    last up-convolution) gives the torch network's float32 logits to the sums' rounding, on a
+    window as missions see them and on one with nothing in it."""
+    from mapper.engines import make_engine
+    ckpt = load_checkpoint()
+    fast, trained = make_engine(ckpt, "openvino"), make_engine(ckpt, "torch")
+    for state in (_ground_window(ckpt.window), np.zeros(ckpt.window.size, np.uint8)):
+        a, b = fast(state), trained(state)
+        assert a.shape == b.shape == ckpt.window.size and a.dtype == np.float32
+        assert np.abs(a - b).max() < 1e-3, np.abs(a - b).max()
+        assert np.mean((a >= 0) != (b >= 0)) < 1e-5
+
+
+def test_the_openvino_engine_gives_the_same_logits_with_any_number_of_threads():
+    from mapper.engines import make_engine
+    ckpt = load_checkpoint()
+    state = _ground_window(ckpt.window, seed=1)
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            engine = make_engine(ckpt, "openvino")
+            out += [engine(state), engine(state)]
+    finally:
+        torch.set_num_threads(before)
+    assert all(np.array_equal(out[0], o) for o in out[1:])
+
+
 def test_the_model_in_bfloat16_predicts_nearly_what_it_does_in_float32():
     ckpt = load_checkpoint()
     w = ckpt.window
     spec = GridSpec((0.0, 0.0, 0.0), w.voxel_m, w.size)
     grid = OccupancyGrid(spec)
-    grid.state[: w.size[0] // 2, :, w.below - 4] = OCCUPIED
-    grid.state[: w.size[0] // 2, :, w.below - 3:] = FREE
+    grid.state[:] = _ground_window(w)
     camera = spec.centres(np.array([[w.size[0] // 2 - 1, w.size[1] // 2, w.below]]))[0]
-    full, half = OccupancyPredictor(ckpt, grid), OccupancyPredictor(ckpt, grid, "bfloat16")
+    full = OccupancyPredictor(ckpt, grid)
     full.update(camera)
-    half.update(camera)
-    a, b = full.probability.astype(np.float32), half.probability.astype(np.float32)
-    assert np.abs(a - b).max() < 0.05 and np.mean((a >= 0.5) != (b >= 0.5)) < 1e-3
+    a = full.probability.astype(np.float32)
+    halves = [OccupancyPredictor(ckpt, grid, "bfloat16", "torch")]
+    try:
+        halves.append(OccupancyPredictor(ckpt, grid, "bfloat16", "openvino"))
+    except ConfigError as e:  # a CPU without native bfloat16 (or with it capped, as in CI)
+        assert "native bfloat16" in str(e) and "--mapper.precision float32" in str(e)
+    for half in halves:
+        half.update(camera)
+        b = half.probability.astype(np.float32)
+        assert np.abs(a - b).max() < 0.05 and np.mean((a >= 0.5) != (b >= 0.5)) < 1e-3
     assert ckpt.model.stem[0].weight.dtype == torch.float32  # the checkpoint's is untouched
-    with pytest.raises(ValueError, match="float32, bfloat16"):
+
+
+def test_an_unknown_engine_or_precision_is_refused_with_the_choices():
+    ckpt = load_checkpoint()
+    grid = OccupancyGrid(GridSpec((0.0, 0.0, 0.0), ckpt.window.voxel_m, ckpt.window.size))
+    with pytest.raises(ConfigError, match="float32, bfloat16"):
         OccupancyPredictor(ckpt, grid, "float16")
+    with pytest.raises(ConfigError, match="openvino, torch"):
+        OccupancyPredictor(ckpt, grid, "float32", "onnx")
