@@ -19,9 +19,12 @@ $(STAMP): pyproject.toml Makefile
 run: $(STAMP)
 	$(BIN)/rovergate run --out $(RUN_OUT)
 
+# The fast tests first, so that a failure shows in a minute or two; then the end-to-end tests,
+# two at a time (most of their time is processes starting and waiting on each other).
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m 'not e2e'
+	$(BIN)/python -m pytest -q -m e2e -n 2
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_loop.py

@@ -183,12 +183,12 @@ def test_study_refuses_bad_settings_in_one_line(tmp_path: Path):
 def test_a_terminated_study_stops_its_workers(tmp_path: Path, launch):
     """SIGTERM (or Ctrl-C) on the study stops its worker processes too, not only itself."""
     p = launch(*STUDY, "--out", str(tmp_path / "s"), "--workers", "2")
-    runs = tmp_path / "s" / "runs"
-    # The first run finished: both workers are up, and each holds a run in flight, written
-    # under .<id>.tmp-<worker pid>.
+    # The first run finished: the workers are up. They are the study's child processes (a
+    # worker between two runs holds none in flight, so the runs' directories would miss it).
     p.wait_for_lines(r"run \S+ finished in", 1, timeout_s=120)
-    workers = {int(d.name.rsplit("-", 1)[1]) for d in runs.glob(".*.tmp-*")}
-    assert workers, "no run in flight"
+    children = Path(f"/proc/{p.proc.pid}/task/{p.proc.pid}/children")
+    workers = {int(pid) for pid in children.read_text().split()}
+    assert workers, "the study has no worker process"
     p.proc.send_signal(signal.SIGTERM)
     assert p.finish(60) == 130 and "re-run the same command to resume" in p.text
     for pid in workers:
