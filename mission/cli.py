@@ -13,6 +13,7 @@ failed, 130 when interrupted.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import signal
@@ -53,6 +54,50 @@ def _mission_config(command: str, args: list[str]) -> MissionConfig:
                     description=COMMANDS[command].help)
 
 
+#: The session flags ``rovergate run`` gives the modules it starts (``--config FILE`` before them).
+_LAUNCH_FLAGS = {"--mode": 1, "--connect": None, "--listen": None, "--namespace": 1,
+                 "--wait-for-peers": 1}
+
+
+def _launched_config(args: list[str]) -> MissionConfig | None:
+    """The config of a module's command line as ``rovergate run`` writes it (``--config FILE``
+    then only session flags), read without tyro: building tyro's parser of the whole mission
+    config cost each module 0.1 to 0.2 s of the process set's start-up. Any other command line
+    (a user's own flags) returns None and goes to tyro, which gives the same config."""
+    if len(args) < 2 or args[0] != "--config":
+        return None
+    given: dict[str, list[str]] = {}
+    flag = None
+    for a in args[2:]:
+        if a.startswith("--"):
+            if a not in _LAUNCH_FLAGS or a in given:
+                return None
+            flag = a
+            given[a] = []
+        elif flag is None:
+            return None
+        else:
+            given[flag].append(a)
+    if any(n is not None and len(given[f]) != n for f, n in _LAUNCH_FLAGS.items() if f in given):
+        return None
+    cfg = load_config(Path(args[1]))
+    session = cfg.session
+    if "--mode" in given:
+        if given["--mode"][0] not in ("peer", "client", "router"):
+            return None
+        session = dataclasses.replace(session, mode=given["--mode"][0])
+    for f, field in (("--connect", "connect"), ("--listen", "listen")):
+        if f in given:
+            session = dataclasses.replace(session, **{field: tuple(given[f])})
+    if "--namespace" in given:
+        session = dataclasses.replace(session, namespace=given["--namespace"][0])
+    if "--wait-for-peers" in given:
+        if not given["--wait-for-peers"][0].isdigit():
+            return None
+        session = dataclasses.replace(session, wait_for_peers=int(given["--wait-for-peers"][0]))
+    return dataclasses.replace(cfg, session=session)
+
+
 def _aliases(args: list[str]) -> list[str]:
     """``--scene X`` is short for ``--scene.name X`` (as the docs write it)."""
     out = []
@@ -68,8 +113,6 @@ def _aliases(args: list[str]) -> list[str]:
 def _run(args: list[str]) -> int:
     """``rovergate run [MISSION.toml] [flags]``: a mission file first, flags over it."""
     if args and not args[0].startswith("-"):
-        import dataclasses
-
         from mission.script import load_script, run_script
         script = load_script(Path(args[0]))
         if any(a == "--config" or a.startswith("--config=") for a in args):
@@ -92,7 +135,7 @@ def _module(name: str) -> Callable[[list[str]], int]:
                 raise ConfigError("--resume-step takes a step number, e.g. --resume-step 12")
             resume_step = int(value)
             del args[i:i + 2]
-        cfg = _mission_config(name, args)
+        cfg = _launched_config(args) or _mission_config(name, args)
         if not cfg.scene.resolved:  # the mission passes a resolved config: no scene to load
             from rover_sim.catalog import resolve_scene
             resolve_scene(cfg.scene)

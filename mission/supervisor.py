@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+from mission.launcher import LaunchedProcess, Launcher, module_args
 from rovergate.errors import MissionFailed
 
 log = logging.getLogger("rovergate.mission")
@@ -61,7 +62,8 @@ class ProcessSupervisor:
         self.command_for = command_for
         self.logs_dir = logs_dir
         self.max_restarts = max_restarts
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, subprocess.Popen | LaunchedProcess] = {}
+        self._launcher: Launcher | None = None
         self.events: list[RestartEvent] = []
         self.resuming: dict[str, RestartEvent] = {}
         self.alive: set[str] = set()
@@ -104,18 +106,26 @@ class ProcessSupervisor:
         """Start every module, logging to ``logs_dir/<module>.log``; with ``resume_step``
         (a mission manager that was restarted), each resumes at that step."""
         self.logs_dir.mkdir(parents=True, exist_ok=True)
+        self._launcher = Launcher(self.logs_dir / "launcher.log")
         for name in self.names:
             self._spawn(name, resume_step)
 
     def _spawn(self, name: str, resume_step: int | None = None) -> None:
         cmd = self.command_for(name, resume_step)
         # A restarted module appends to the log of the one that died.
-        f = open(self.logs_dir / f"{name}.log",  # noqa: SIM115 -- closed in shutdown()
-                 "w" if resume_step is None else "a")
-        self._logs.append(f)
+        log_path = self.logs_dir / f"{name}.log"
+        ours = module_args(cmd)
         try:
-            self.procs[name] = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
-                                                stdin=subprocess.DEVNULL)
+            if ours is not None and self._launcher is not None:
+                # One of our modules: forked from the launcher, its imports already done.
+                self.procs[name] = self._launcher.spawn(ours, log_path,
+                                                        append=resume_step is not None)
+            else:
+                f = open(log_path,  # noqa: SIM115 -- closed in shutdown()
+                         "w" if resume_step is None else "a")
+                self._logs.append(f)
+                self.procs[name] = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
+                                                    stdin=subprocess.DEVNULL)
         except OSError as exc:
             raise MissionFailed(f"could not start {name} ({' '.join(cmd)}): {exc}") from None
         log.info("started %s (pid %d)%s", name, self.procs[name].pid,
@@ -217,7 +227,13 @@ class ProcessSupervisor:
                     codes[name] = p.wait()
         for f in self._logs:
             f.close()
+        self.close_launcher()
         return codes
+
+    def close_launcher(self) -> None:
+        if self._launcher is not None:
+            self._launcher.close()
+            self._launcher = None
 
     def kill_all(self) -> None:
         for p in self.procs.values():

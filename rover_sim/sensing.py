@@ -17,7 +17,6 @@ is as reproducible as a clean one, in one process or many.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from rovergate.config import SensingConfig
 from rovergate.geometry import rot_z
@@ -61,6 +60,7 @@ class Sensing:
         c = self.cfg
         lost = np.zeros(shape, dtype=bool)
         if c.dropout_blob_frac > 0:
+            from scipy.ndimage import gaussian_filter  # (degraded sensing only: 0.25 s)
             field = gaussian_filter(rng.standard_normal(shape), sigma=c.dropout_blob_px,
                                     mode="wrap")
             lost |= field > np.quantile(field, 1.0 - c.dropout_blob_frac)

@@ -194,3 +194,37 @@ def test_a_checkpoint_that_names_code_is_refused_not_run(tmp_path: Path):
     (tmp_path / CHECKPOINT).write_bytes(b"\x80\x05garbage")
     with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
         load(tmp_path)
+
+
+def test_the_launcher_forks_modules_that_report_their_exit_like_processes(tmp_path: Path):
+    """The module launcher (mission/launcher.py) forks a module from its preloaded
+    interpreter: the module logs to its own file under its own command line, and its exit,
+    by code or by signal, reaches the mission as subprocess.Popen.returncode gives it."""
+    import dataclasses
+    import subprocess
+
+    from mission.launcher import Launcher
+    from rovergate.config import MissionConfig, SessionConfig, save_config
+    cfg = dataclasses.replace(MissionConfig(out=tmp_path), session=SessionConfig(
+        mode="peer", connect=(f"tcp/127.0.0.1:{free_loopback_port()}",),
+        listen=(f"tcp/127.0.0.1:{free_loopback_port()}",), wait_for_peers=1))
+    save_config(cfg, tmp_path / "config.json")
+    launcher = Launcher(tmp_path / "launcher.log")
+    try:
+        bad = launcher.spawn(["gate", "--no-such-flag"], tmp_path / "bad.log", append=False)
+        assert bad.wait(60) == 2
+        assert "Unrecognized options: --no-such-flag" in (tmp_path / "bad.log").read_text()
+        # A module with nobody to connect to waits for its peer: it runs until killed.
+        waiting = launcher.spawn(["gate", "--config", str(tmp_path / "config.json")],
+                                 tmp_path / "gate.log", append=False)
+        with pytest.raises(subprocess.TimeoutExpired):
+            waiting.wait(0.5)
+        assert waiting.poll() is None
+        cmdline = Path(f"/proc/{waiting.pid}/cmdline").read_bytes()
+        assert cmdline.startswith(b"rovergate gate --config"), cmdline
+        waiting.kill()
+        assert waiting.wait(30) == -signal.SIGKILL
+        waiting.kill()  # an exited module is not signalled again (its pid may be reused)
+    finally:
+        launcher.close()
+    assert launcher.proc.returncode == 0

@@ -122,3 +122,27 @@ def test_a_flood_of_bad_messages_is_counted_whole_and_logged_sparsely(caplog):
     assert len(lines) == DROP_LOG_FIRST + 5000 // DROP_LOG_EVERY
     assert lines[0].endswith("(1 dropped so far)")
     assert lines[-1].endswith("(5000 dropped so far; logging one in 1000)")
+
+
+def test_a_launched_modules_command_line_reads_as_tyro_reads_it(tmp_path):
+    """The process set starts each module with ``--config FILE`` and session flags; the
+    module reads that command line without tyro (start-up time), to the same config, and any
+    other command line goes to tyro."""
+    import dataclasses
+
+    from mission.cli import _launched_config, _mission_config
+    from rovergate.config import MissionConfig, save_config
+    path = tmp_path / "config.json"
+    save_config(dataclasses.replace(MissionConfig(steps=7, condition="gated"), out=tmp_path),
+                path)
+    argv = ["--config", str(path), "--mode", "client", "--connect", "unixsock-stream//tmp/x.sock",
+            "--listen", "--namespace", "ns2", "--wait-for-peers", "1"]
+    fast = _launched_config(argv)
+    assert fast is not None and fast == _mission_config("mapper", argv)
+    assert fast.session.mode == "client" and fast.session.listen == ()
+    assert fast.session.connect == ("unixsock-stream//tmp/x.sock",) and fast.steps == 7
+    # A restarted module's flags and a user's own go to tyro.
+    for other in (argv + ["--steps", "9"], argv[:2] + ["--mode", "bogus"],
+                  argv[:2] + ["--wait-for-peers", "x"], argv[:2] + ["--mode"],
+                  ["--steps", "3"], argv + ["--mode", "peer"]):
+        assert _launched_config(other) is None

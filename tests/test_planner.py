@@ -298,3 +298,16 @@ def test_gain_field_views_are_visible_mask_to_the_bit():
         z = rng.random(shape)
         z[rng.random(shape) < 0.5] = np.inf
         assert np.array_equal(_erode(z), minimum_filter(z, size=3, mode="nearest"))
+
+
+def test_the_rover_grounds_box_minimum_is_scipys_minimum_filter():
+    """The collision model's ground (the lowest point under the rover's footprint) is
+    scipy's minimum filter with edges repeated, to the bit, at every box size it uses."""
+    from scipy.ndimage import minimum_filter
+
+    from planner.collision import _box_minimum
+    rng = np.random.default_rng(3)
+    for shape, size in [((60, 45), 9), ((30, 40), 3), ((1, 1), 5), ((2, 7), 11), ((9, 1), 7)]:
+        z = rng.normal(size=shape)
+        z[rng.random(shape) < 0.4] = np.inf
+        assert np.array_equal(_box_minimum(z, size), minimum_filter(z, size=size, mode="nearest"))
