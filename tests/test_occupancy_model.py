@@ -368,6 +368,38 @@ def test_the_openvino_engine_gives_the_same_logits_with_any_number_of_threads():
     assert all(np.array_equal(out[0], o) for o in out[1:])
 
 
+_LOGITS_DIGEST = """
+import hashlib, numpy as np, torch
+from mapper.engines import make_engine
+from mapper.model import load_checkpoint
+torch.set_num_threads(1)
+ckpt = load_checkpoint()
+state = np.random.default_rng(3).choice(np.array([0, 1, 2], np.uint8), ckpt.window.size,
+                                        p=[0.7, 0.1, 0.2])
+print(torch.backends.cpu.get_cpu_capability(), hashlib.sha256(
+    make_engine(ckpt, "openvino")(state).tobytes()).hexdigest())
+"""
+
+
+def test_the_openvino_engine_gives_the_same_logits_with_the_instruction_set_capped_at_avx2():
+    """The README's cross-CPU claim: the default engine's logits do not depend on the vector
+    instructions oneDNN may use (AVX2 or AVX-512 here; on an AVX2-only CPU both runs are AVX2,
+    and the test checks only that they agree)."""
+    import os
+    digests = {}
+    for capped in (True, False):
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY")}
+        if capped:
+            env.update(ONEDNN_MAX_CPU_ISA="AVX2", ATEN_CPU_CAPABILITY="avx2")
+        out = subprocess.run([sys.executable, "-c", _LOGITS_DIGEST], env=env, text=True,
+                             capture_output=True, timeout=120)
+        assert out.returncode == 0, out.stderr[-2000:]
+        digests[capped] = out.stdout.split()
+    assert digests[True][0] == "AVX2", digests
+    assert digests[True][1] == digests[False][1], digests
+
+
 def test_the_model_in_bfloat16_predicts_nearly_what_it_does_in_float32():
     ckpt = load_checkpoint()
     w = ckpt.window
