@@ -142,7 +142,8 @@ def engines(windows: list[np.ndarray], repeats: int) -> None:
           f"{'max |dp|':>10}{'flips per voxel':>17}")
     for (name, precision), t in times.items():
         med_t = statistics.median(t)
-        note = (f"  (over {SLOW_S:.0f} s a pass: on the first {seen[name, precision]} windows only)"
+        note = (f"  (over {SLOW_S:.0f} s a pass: {repeats} passes on the first window, then one"
+                f" on each of the next {seen[name, precision] - 1})"
                 if (name, precision) in slow else "")
         print(f"{name:<10}{precision:<11}{1000 * med_t:>10.1f}{base / med_t:>17.2f}x"
               f"{worst[name, precision]:>10.4f}"
