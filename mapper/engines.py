@@ -194,6 +194,13 @@ class OpenVinoEngine(Engine):
         self._request = self._compiled.create_infer_request()
         self._x = np.zeros((1, 2, *checkpoint.window.size), dtype=np.float32)
 
+    def kernels(self) -> set[str]:
+        """The kernels OpenVINO chose for this CPU (``brgconv_avx512_f32``, ``jit_avx2_f32``,
+        ...): which instruction set its pass really runs on."""
+        return {op.get_rt_info()["primitiveType"].astype(str)
+                for op in self._compiled.get_runtime_model().get_ops()
+                if "primitiveType" in op.get_rt_info()}
+
     def __call__(self, state: np.ndarray) -> np.ndarray:
         np.not_equal(state & OCCUPIED, 0, out=self._x[0, 0])  # bool into float32: 0 or 1
         np.equal(state, FREE, out=self._x[0, 1])

@@ -168,8 +168,8 @@ class MapperConfig:
     bfloat16, AVX512-BF16 or AMX; about one covered voxel in 13,000 lands on the other side
     of 0.5; many times slower in torch without native support, and refused by openvino)."""
     engine: str = "openvino"
-    """The runtime of the model's pass: openvino (the network compiled for this CPU, about
-    1.8 to 2 times faster than torch with one thread, with AVX-512 or AVX2) or torch (the network as
+    """The runtime of the model's pass: openvino (the network compiled for this CPU, 1.8 to 2
+    times faster than torch with one thread, with AVX-512 or AVX2) or torch (the network as
     trained, in PyTorch)."""
 
 

@@ -4,6 +4,7 @@ the evaluation's scoring."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -377,10 +378,7 @@ ckpt = load_checkpoint()
 state = np.random.default_rng(3).choice(np.array([0, 1, 2], np.uint8), ckpt.window.size,
                                         p=[0.7, 0.1, 0.2])
 engine = make_engine(ckpt, "openvino")
-kernels = {op.get_rt_info()["primitiveType"].astype(str)
-           for op in engine._compiled.get_runtime_model().get_ops()
-           if "primitiveType" in op.get_rt_info()}
-print(torch.backends.cpu.get_cpu_capability(), any("avx512" in k for k in kernels),
+print(torch.backends.cpu.get_cpu_capability(), any("avx512" in k for k in engine.kernels()),
       hashlib.sha256(engine(state).tobytes()).hexdigest())
 """
 
@@ -389,7 +387,6 @@ def test_the_openvino_engine_gives_the_same_logits_with_the_instruction_set_capp
     """The README's cross-CPU claim: the default engine's logits do not depend on the vector
     instructions oneDNN uses (its AVX2 or AVX-512 kernels; on an AVX2-only CPU both runs are
     AVX2, and the test checks only that they agree)."""
-    import os
     digests = {}
     for capped in (True, False):
         env = {k: v for k, v in os.environ.items()
