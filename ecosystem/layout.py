@@ -6,8 +6,9 @@ checks that it is this one). In Foxglove: Layouts, Import from file.
 - a 3D panel in frame ``map``, following ``base_link``: the scene's mesh, the observed
   surface S_t (grey), the learned prediction (orange), the planner-facing map coloured by
   its ``source`` field (0 observed, 1 predicted, 2 oracle false negative, 3 truth; turbo
-  colours from blue to red), the planned path and the camera's pose;
-- the depth image (turbo colours, near to far);
+  colours from blue to red), the rover's traversability map (unknown, clear, obstacle), the
+  planned path and the camera's pose;
+- the depth image (turbo colours, near to far), and the rover's two hazard cameras';
 - coverage against the step (``/rover/mission/status``'s ``coverage``);
 - the mission status as it comes (step, state, condition, collisions).
 """
@@ -39,6 +40,8 @@ def layout(namespace: str = "rover") -> fl.Layout:
             topic("planner_map"): fl.BaseRendererPointCloudTopicSettings(
                 visible=True, point_size=4, color_mode="colormap", color_map="turbo",
                 color_field="source", min_value=0, max_value=3),
+            topic("traversability"): fl.BaseRendererRosOccupancyGridTopicSettings(
+                visible=True),
             topic("path"): fl.BaseRendererPosesTopicSettings(visible=True, type="line",
                                                                line_width=0.08),
             topic("pose"): fl.BaseRendererPoseTopicSettings(visible=True, type="arrow"),
@@ -46,13 +49,19 @@ def layout(namespace: str = "rover") -> fl.Layout:
     depth = fl.ImagePanel(title="depth", config=fl.ImageConfig(
         image_mode=fl.ImageModeConfig(image_topic=topic("depth"), color_mode="colormap",
                                       color_map="turbo")))
+    hazcams = fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(content=fl.ImagePanel(title=f"hazcam {end}", config=fl.ImageConfig(
+            image_mode=fl.ImageModeConfig(image_topic=topic(f"hazcam_{end}"),
+                                          color_mode="colormap", color_map="turbo"))))
+        for end in ("front", "rear")])
     coverage = fl.PlotPanel(title="coverage", config=fl.PlotConfig(paths=[
         fl.PlotSeries(value=f"{topic('status')}.coverage", label="coverage",
                       timestamp_method="headerStamp")]))
     status = fl.RawMessagesPanel(title="mission status", config=fl.RawMessagesConfig(
         topic_path=topic("status")))
     right = fl.SplitContainer(direction="column", items=[
-        fl.SplitItem(proportion=2, content=depth), fl.SplitItem(content=coverage),
+        fl.SplitItem(proportion=2, content=depth), fl.SplitItem(content=hazcams),
+        fl.SplitItem(content=coverage),
         fl.SplitItem(content=status)])
     return fl.Layout(content=fl.SplitContainer(direction="row", items=[
         fl.SplitItem(proportion=2, content=three_d), fl.SplitItem(content=right)]))

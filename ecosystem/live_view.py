@@ -12,8 +12,10 @@ Channels:
   message encoding ``cdr``, the bytes unchanged: depth image, intrinsics, poses, surface,
   prediction, planner map (the layout colours it by its ``source`` field), path, status;
 - ``/tf``, a ``tf2_msgs/msg/TFMessage`` per pose: ``map`` to ``camera`` (the depth camera's
-  optical frame, the frame of the image and intrinsics) and ``map`` to ``base_link`` (the
-  platform's base), stamped with the step as every message is;
+  optical frame, the frame of the image and intrinsics), ``map`` to ``base_link`` (the
+  platform's base) and ``map`` to ``hazcam_front_optical`` and ``hazcam_rear_optical`` (the
+  rover's hazard cameras, from the base pose and their mounting), stamped with the step as
+  every message is;
 - ``/rover/scene``, the scene's true mesh, once per subscriber, as a ``foxglove.SceneUpdate``
   (for orientation: the mission's maps are scored against it).
 
@@ -30,6 +32,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ecosystem.taps import tapped_topics
+from rovergate.config import HazcamConfig
 from rovergate.graph import TOPICS
 from rovergate.keys import Keys
 from rovergate.messages import TYPESTORE
@@ -62,7 +65,10 @@ class LiveView:
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
                  namespace: str = "rover", scene: Scene | None = None,
-                 name: str = "rovergate") -> None:
+                 name: str = "rovergate", hazcam: HazcamConfig | None = None) -> None:
+        """``hazcam``: the hazard cameras' mounting, for their frames on /tf (the default
+        mounting if None)."""
+        self.hazcam = hazcam or HazcamConfig()
         try:
             import foxglove
             from foxglove.channels import SceneUpdateChannel
@@ -111,6 +117,8 @@ class LiveView:
         channel.log(data, log_time=time_ns)
         if topic in FRAMES:
             self._tf.log(_transform(data, FRAMES[topic]), log_time=time_ns)
+        if topic == "base_pose":  # the hazard cameras ride on the base (their mounting)
+            self._tf.log(_hazcam_transforms(data, self.hazcam), log_time=time_ns)
 
     def watched(self) -> bool:
         """True once a Foxglove client subscribed to a channel of the mission."""
@@ -136,6 +144,26 @@ def _transform(pose_stamped: bytes, child: str) -> bytes:
             translation=T["geometry_msgs/msg/Vector3"](x=p.x, y=p.y, z=p.z),
             rotation=msg.pose.orientation))
     return bytes(TYPESTORE.serialize_cdr(T[TF_TYPE](transforms=[tf]), TF_TYPE))
+
+
+def _hazcam_transforms(base_pose_stamped: bytes, hazcam: HazcamConfig) -> bytes:
+    """A TFMessage placing ``hazcam_front_optical`` and ``hazcam_rear_optical`` at the
+    hazard cameras' poses for a base PoseStamped (CDR in, CDR out)."""
+    from rovergate.geometry import HAZCAMS, hazcam_from_base, matrix_to_quat
+    from rovergate.messages import pose_from_ros
+    T = TYPESTORE.types
+    msg = TYPESTORE.deserialize_cdr(base_pose_stamped, "geometry_msgs/msg/PoseStamped")
+    base = pose_from_ros(msg)[1].matrix()
+    out = []
+    for name in HAZCAMS:
+        M = hazcam_from_base(base, hazcam, name)
+        q = matrix_to_quat(M[:3, :3])
+        out.append(T["geometry_msgs/msg/TransformStamped"](
+            header=msg.header, child_frame_id=f"hazcam_{name}_optical",
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](*(float(v) for v in M[:3, 3])),
+                rotation=T["geometry_msgs/msg/Quaternion"](*(float(v) for v in q)))))
+    return bytes(TYPESTORE.serialize_cdr(T[TF_TYPE](transforms=out), TF_TYPE))
 
 
 def _scene_update(scene: Scene):

@@ -9,11 +9,13 @@ import numpy as np
 from mapper.grid import GridSpec, OccupancyGrid
 from mapper.integrate import VoxelSurface, backproject
 from rovergate.conditions import get_condition
-from rovergate.config import MapperConfig, MissionConfig
+from rovergate.config import HazcamConfig, MapperConfig, MissionConfig
 from rovergate.errors import ConfigError
+from rovergate.geometry import hazcam_from_base
 from rovergate.types import (
     PREDICTED_DTYPE,
     SURFACE_DTYPE,
+    CameraIntrinsics,
     MapperOutput,
     SensorFrame,
     make_cloud,
@@ -60,11 +62,15 @@ class Mapper:
 
     def __init__(self, cfg: MapperConfig, bounds_m: tuple[float, ...] | None = None,
                  checkpoint: Checkpoint | None = None, precision: str = "float32",
-                 engine: str = "openvino") -> None:
+                 engine: str = "openvino", hazcam: HazcamConfig | None = None) -> None:
         """``precision`` and ``engine``: the model's arithmetic and runtime
         (:class:`mapper.model.OccupancyPredictor`; missions take ``MapperConfig.precision``
-        and ``MapperConfig.engine``)."""
+        and ``MapperConfig.engine``). ``hazcam``: integrate the rover's hazard cameras too
+        (``--hazcam.feed-map``); None, the mast camera alone maps the scene."""
         self.cfg = cfg
+        self.hazcam = hazcam
+        self._hazcam_k = (None if hazcam is None else CameraIntrinsics.from_fov(
+            hazcam.width_px, hazcam.height_px, hazcam.vfov_deg))
         self.surface = VoxelSurface(cfg.voxel_m)
         self.grid: OccupancyGrid | None = None
         self.predictor: OccupancyPredictor | None = None
@@ -78,16 +84,24 @@ class Mapper:
     @classmethod
     def for_mission(cls, cfg: MissionConfig) -> Mapper:
         return cls(cfg.mapper, cfg.scene.bounds_m, mission_checkpoint(cfg),
-                   cfg.mapper.precision, cfg.mapper.engine)
+                   cfg.mapper.precision, cfg.mapper.engine,
+                   cfg.hazcam if cfg.hazcam.feed_map and cfg.platform == "rover" else None)
 
     def integrate(self, frame: SensorFrame) -> None:
         """Take one frame into S_t, the grid and the model's prediction, without reading the
         products out (a restarted mapper replays its past frames with this)."""
         T_cam = frame.T_map_camera.matrix()
-        pts = backproject(frame.depth_m, frame.intrinsics, T_cam)
-        self.surface.integrate(pts)
+        views = [(frame.depth_m, frame.intrinsics, T_cam)]
+        if self.hazcam is not None:
+            T_base = frame.T_map_base.matrix()
+            views += [(depth, self._hazcam_k, hazcam_from_base(T_base, self.hazcam, name))
+                      for name, depth in sorted(frame.hazcams.items()) if depth.size]
+        for depth, k, T in views:
+            pts = backproject(depth, k, T)
+            self.surface.integrate(pts)
+            if self.predictor is not None:
+                self.grid.integrate(depth, k, T, returns_map=pts)
         if self.predictor is not None:
-            self.grid.integrate(frame.depth_m, frame.intrinsics, T_cam, returns_map=pts)
             self.predictor.update(T_cam[:3, 3])
 
     def step(self, frame: SensorFrame) -> MapperOutput:

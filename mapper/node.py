@@ -23,7 +23,9 @@ class MapperNode(LogicDefaults):
 
     @staticmethod
     def frame(step: int, inputs: dict[str, Any]) -> SensorFrame:
-        return SensorFrame(step, inputs["depth"], inputs["info"], inputs["pose"], inputs["base"])
+        hazcams = {end: inputs[end] for end in ("front", "rear") if inputs.get(end) is not None}
+        return SensorFrame(step, inputs["depth"], inputs["info"], inputs["pose"], inputs["base"],
+                           hazcams=hazcams)
 
     def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()

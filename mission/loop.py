@@ -105,6 +105,9 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 # (--planner.command) need not, and is not waited for. (Which planner planned
                 # step t-1 is read before this boundary, which may swap it.)
                 rejected = (transport.poll if external else transport.receive)("rejected", t - 1)
+                traverse = (transport.poll if external else transport.receive)("traverse", t - 1)
+                if traverse is not None:
+                    record.traverse.append(traverse)
                 record.paths.append(path)
                 report = transport.receive("execution", t - 1)
                 collisions += int(report.collided)
@@ -198,7 +201,7 @@ def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False,
             from ecosystem.live_view import LiveView
             from rover_sim.catalog import load_scene
             taps.taps.append(LiveView(cfg.viz_host, cfg.viz_port, cfg.session.namespace,
-                                      load_scene(cfg.scene)))
+                                      load_scene(cfg.scene), hazcam=cfg.hazcam))
         if cfg.ros2:
             from ecosystem.ros2 import Ros2Bridge
             taps.taps.append(Ros2Bridge(cfg.ros2_router, cfg.ros2_domain,

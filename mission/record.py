@@ -8,7 +8,7 @@ import numpy as np
 
 from mission.coverage import auc
 from mission.evaluation import PLANNER_FAULT, UNSEEN, stuck_flags
-from rovergate.types import ExecutionReport, PlanPath
+from rovergate.types import ExecutionReport, PlanPath, TraverseReport
 
 
 @dataclass
@@ -30,6 +30,9 @@ class MissionRecord:
     """Per step 0..T-1: candidates rejected as infeasible because of oracle false positives."""
     executions: list[ExecutionReport] = field(default_factory=list)
     paths: list[PlanPath] = field(default_factory=list)
+    traverse: list[TraverseReport] = field(default_factory=list)
+    """Per step 0..T-1: what the rover's traversability layer refused, and the planner's
+    choice (a planner of the user's own may not say)."""
     stage_s: dict[str, list[float]] = field(default_factory=dict)
     """Compute time of each stage (render, integrate, gate, plan, execute) per step."""
     step_wall_s: list[float] = field(default_factory=list)
@@ -77,11 +80,17 @@ class MissionRecord:
         med = {k: float(np.median(v)) for k, v in sorted(self.stage_s.items()) if v}
         stage_sum = np.zeros(len(self.step_wall_s))
         for name, values in self.stage_s.items():
-            if name in ("render", "integrate", "gate", "plan", "execute"):
+            if name in ("render", "integrate", "gate", "traverse", "plan", "execute"):
                 n = min(len(values), len(stage_sum))
                 stage_sum[:n] += values[:n]
         transport = np.maximum(np.asarray(self.step_wall_s) - stage_sum, 0.0)
         shares = [s for s in self.fp_gain_share if s is not None]
+        refused: dict[str, int] = {}
+        reasons: dict[str, int] = {}
+        for r in self.traverse:
+            for k, v in r.refused.items():
+                refused[k] = refused.get(k, 0) + v
+            reasons[r.reason] = reasons.get(r.reason, 0) + 1
         return {
             "mode": self.mode,
             "steps": len(self.coverage) - 1,
@@ -103,6 +112,11 @@ class MissionRecord:
             "untraversable_stops": int(sum(e.untraversable for e in self.executions)),
             "min_clearance_per_step_m": [e.min_clearance_m for e in self.executions],
             "path_length_m": float(sum(e.path_length_m for e in self.executions)),
+            "refused_by_hazard": {k: refused.get(k, 0) for k in
+                                  ("unknown", "wheel-drop", "tilt", "belly")},
+            "refused_per_step": [sum(r.refused.values()) for r in self.traverse],
+            "plan_reasons": dict(sorted(reasons.items())),
+            "backouts": reasons.get("backout", 0),
             "final_pose_error_m": (self.executions[-1].pose_error_m if self.executions
                                    else 0.0),
             "median_stage_s": med,

@@ -76,7 +76,9 @@ LABELS = {"obs": "Obs. only", "learned-fp": "Learned − FP†", "learned": "Lea
           "gated-ray": "Gate, ray-consistent", "gated-pose": "Gate, pose-aware",
           "gated-split": "Gate, split channels"}
 PLACEBO_LABEL = "Placebo (learned vs learned)"
-STAGES = ("render", "integrate", "gate", "plan", "execute")
+STAGES = ("render", "integrate", "gate", "traverse", "plan", "execute")
+#: The hazards the rover's traversability layer refuses motions for (planner/traversability.py).
+HAZARD_KINDS = ("unknown", "wheel-drop", "tilt", "belly")
 #: Table 1's metrics: (runs.csv column, heading, digits).
 METRICS = (("final_coverage", "ΔC_T", 3), ("auc", "ΔAUC", 3), ("s70", "ΔS70", 1))
 #: Count fields of metrics.json for the failure modes (absent in older runs: read with .get).
@@ -140,6 +142,9 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             "collisions_unseen": m.get("collisions_unseen"),
             "stuck_steps": m.get("stuck_steps"),
             "min_clearance_m": m.get("min_clearance_m"),
+            **{f"refused_{k.replace('-', '_')}": (m.get("refused_by_hazard") or {}).get(k)
+               for k in HAZARD_KINDS},
+            "backouts": m.get("backouts"),
             "fp_gain_share": m.get("fp_gain_share"),
             "rejected_by_fp": m.get("rejected_by_fp"),
             "coverage": m["coverage"],
@@ -460,6 +465,61 @@ def failure_modes(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, d
     return "\n".join(lines + notes) + "\n", figures
 
 
+#: The rover's driving targets (issue 26): a run stuck this many steps or more fails, and so
+#: does one that drove less than this far.
+MAX_STUCK_STEPS = 10
+MIN_DRIVEN_M = 20.0
+
+
+def driving(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
+    """How the platform drove, per condition: collisions, stuck steps (as a share of all
+    steps, and the runs stuck more than ``MAX_STUCK_STEPS``), metres driven (the least, and
+    the runs under ``MIN_DRIVEN_M``), the closest approach to the true scene, the motions the
+    rover's traversability layer refused by hazard, its backouts, and the layer's time per
+    step (the median of the runs' medians)."""
+    lines = ["| Planner occupancy | runs | collisions | stuck steps (share) | runs stuck > "
+             f"{MAX_STUCK_STEPS} | least driven (m) | runs under {MIN_DRIVEN_M:.0f} m | "
+             "closest approach (m) | refused: unknown / wheel drop / tilt / belly | "
+             "backouts | layer (ms/step) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    figures: dict = {}
+    for c in conditions:
+        runs = [r for r in rows if r["condition"] == c]
+        if not runs:
+            continue
+        steps = sum(r["steps"] for r in runs)
+        stuck = [r.get("stuck_steps") or 0 for r in runs]
+        driven = [r["path_length_m"] for r in runs]
+        clear = [r["min_clearance_m"] for r in runs if r.get("min_clearance_m") is not None
+                 and math.isfinite(r["min_clearance_m"])]
+        refused = {k: sum(r.get(f"refused_{k.replace('-', '_')}") or 0 for r in runs)
+                   for k in HAZARD_KINDS}
+        layer = [r["traverse_s"] for r in runs if r.get("traverse_s") is not None]
+        fig = {"runs": len(runs), "collisions": int(sum(r["collisions"] for r in runs)),
+               "stuck_steps": int(sum(stuck)), "stuck_share": sum(stuck) / steps if steps
+               else None, "runs_stuck_over_max": sum(v > MAX_STUCK_STEPS for v in stuck),
+               "least_driven_m": min(driven), "runs_under_min_driven":
+               sum(d < MIN_DRIVEN_M for d in driven),
+               "closest_approach_m": min(clear) if clear else None, "refused": refused,
+               "backouts": int(sum(r.get("backouts") or 0 for r in runs)),
+               "traverse_ms_median": 1000 * float(np.median(layer)) if layer else None}
+        figures[c] = fig
+        lines.append(
+            f"| {LABELS.get(c, c)} | {len(runs)} | {fig['collisions']} | {fig['stuck_steps']} "
+            f"({100 * (fig['stuck_share'] or 0):.1f}%) | {fig['runs_stuck_over_max']} | "
+            f"{fig['least_driven_m']:.1f} | {fig['runs_under_min_driven']} | "
+            + _fmt(fig["closest_approach_m"], False, 2) + " | "
+            + " / ".join(str(refused[k]) for k in HAZARD_KINDS)
+            + f" | {fig['backouts']} | " + _fmt(fig["traverse_ms_median"], False, 1) + " |")
+    notes = ["", "Totals over every run of the condition. Stuck: under 0.5 m of net progress "
+             "over the last 10 steps. Closest approach: the least clearance between the body "
+             "and the true scene over every executed motion of every run (negative: a "
+             "touch). Refused: candidate goals and motions the rover's traversability layer "
+             "refused, by the first hazard found; backouts: steps the rover backed along the "
+             "way it came (planner/traversability.py). The layer's time is the planner's "
+             "`traverse` stage: the frames into the height map and the step's masks."]
+    return "\n".join(lines + notes) + "\n", figures
+
+
 def clean_run(run: dict) -> bool:
     """A run with no stuck step and no collision."""
     return run["stuck_steps"] == 0 and run["collisions"] == 0
@@ -700,6 +760,7 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
     write_runs_csv(rows, out / "runs.csv")
     t1, f1 = table1(rows, cfg.conditions, cfg.bootstrap, cfg.steps)
     tf, ff = failure_modes(rows, cfg.conditions)
+    td, fd = driving(rows, cfg.conditions)
     tr, fr = robustness(rows, cfg.conditions, cfg.bootstrap)
     t2, f2 = table2(rows, cfg.bootstrap)
     if platform is None:
@@ -709,7 +770,8 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
               f"{', '.join(cfg.scenes)}, starts {', '.join(cfg.starts)}.\n\n")
     (out / "table1.md").write_text("# Table 1: controlled occupancy interventions\n\n"
                                    + header + t1 + "\n## Failure modes per condition\n\n"
-                                   + tf + "\n## Without the runs that were stuck or collided\n\n"
+                                   + tf + "\n## How the platform drove\n\n" + td
+                                   + "\n## Without the runs that were stuck or collided\n\n"
                                    + tr)
     (out / "table2.md").write_text("# Table 2: final coverage, learned against the "
                                    "observation-gated filter\n\n" + header + t2)
@@ -734,7 +796,8 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
         "run_wall_s_sum": float(sum(r["wall_s"] for r in rows)),
         "median_step_s": float(np.median([r["median_step_s"] for r in rows])) if rows else None,
         "median_stage_s": stages,
-        "table1": f1, "failure_modes": ff, "robustness": fr, "table2": f2, "plots": plots,
+        "table1": f1, "failure_modes": ff, "driving": fd, "robustness": fr, "table2": f2,
+        "plots": plots,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

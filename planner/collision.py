@@ -10,10 +10,11 @@ the same plane-relative heights, as its body tilts with the ground.
 
 The rover's limits are checked on the same estimate: the plane fitted to the lowest map points
 of the cells around a pose must be no steeper than the slope limit, and none of them farther
-from it than the step limit (cells without points are unknown and pass, unless the rover drives
-on known ground only). The flyer's model (:class:`FlyerCollisionModel`) keeps its sphere clear
-of every map point and between its altitude limits over the estimated ground, and, given the
-known free space (:mod:`planner.freespace`), its centre out of the unknown.
+from it than the step limit (cells without points are unknown and pass here: the rover's
+traversability layer, :mod:`planner.traversability`, refuses unknown ground). The flyer's
+model (:class:`FlyerCollisionModel`) keeps its sphere clear of every map point and between its
+altitude limits over the estimated ground, and, given the known free space
+(:mod:`planner.freespace`), its centre out of the unknown.
 
 Everything reads the same planner-facing map as the gain: a hallucinated point both attracts
 the platform and blocks its way, as in the paper.
@@ -62,14 +63,20 @@ class OccupancyCollisionModel:
 
     def __init__(self, points_map: np.ndarray, rover: RoverConfig, bounds_m: tuple[float, ...],
                  ground_cell_m: float, obstacle_voxel_m: float, fallback_ground_z: float,
-                 predicted: np.ndarray | None = None, contacts: np.ndarray | None = None
-                 ) -> None:
-        """``predicted``: (N,) bool, the points that are predictions, not measurements. A cell's
+                 predicted: np.ndarray | None = None, contacts: np.ndarray | None = None,
+                 ground_ref=None) -> None:
+        """``ground_ref``: the rover's measured ground, a callable (N, 2) positions ->
+        (known, height) (:meth:`planner.traversability.TerrainMap.ground_at`): where it knows
+        the ground, a map point's height is taken over it rather than over the map's own
+        estimate (the lowest points of 0.5 m cells, which sinks below a crest and makes the
+        ground of a crater's rim an obstacle). ``predicted``: (N,) bool, the points that are
+        predictions, not measurements. A cell's
         ground comes from its measured points when it has any: a prediction's height is
         uncertain by its voxel, and one low predicted point would sink the ground estimate
         under everything measured around it. ``contacts``: points where the rover touched the
         scene: obstacles whatever their height (a bumper's reading, not ground)."""
         self.rover = rover
+        self._ground_ref = ground_ref
         self._contacts = np.zeros((0, 3)) if contacts is None else np.asarray(contacts)
         self.cell = ground_cell_m
         self.fallback_ground_z = fallback_ground_z
@@ -121,9 +128,6 @@ class OccupancyCollisionModel:
                                                    body_h))
         self._body_dz = rover.clearance_m + body_h / 2
         self.checks = 0
-        self.known_ground_only = False
-        self.home: tuple[float, float] | None = None
-        self.home_radius = float(np.hypot(rover.length_m, rover.width_m))
 
     @property
     def obstacle_points(self) -> np.ndarray:
@@ -155,6 +159,9 @@ class OccupancyCollisionModel:
         if self._map_obstacle_cache is None:
             pts, ij = self._inside
             h = pts[:, 2] - self._ground_plane(pts[:, :2], ij)
+            if self._ground_ref is not None and len(pts):
+                known, z = self._ground_ref(pts[:, :2].astype(np.float64))
+                h = np.where(known, pts[:, 2] - z, h)
             keep = ((h > self.rover.clearance_m - BODY_MARGIN_M)
                     & (h < self.rover.body_top_m + BODY_MARGIN_M))
             self._map_obstacle_cache = (pts[keep], h[keep])
@@ -170,13 +177,6 @@ class OccupancyCollisionModel:
         manager.registerObjects(self._objects)
         manager.setup()
         return manager
-
-    def drive_known_ground_only(self, x: float, y: float) -> None:
-        """From now on, poses farther than a body diagonal from (x, y) need map points under
-        at least three of their wheels: the rover drives where it has seen (or predicted)
-        ground, not into its camera's blind spots."""
-        self.known_ground_only = True
-        self.home = (x, y)
 
     def _cells(self, xy: np.ndarray) -> np.ndarray:
         ij = np.floor((xy - self.origin) / self.cell).astype(np.int64)
@@ -279,16 +279,15 @@ class OccupancyCollisionModel:
         return np.where(known[i, j], plane, self.ground[i, j])
 
     def traversable(self, x: float, y: float, yaw: float) -> bool:
-        """Whether the estimated ground at (x, y) is within the slope and step limits (and,
-        driving on known ground only, known there or near where the rover stands)."""
+        """Whether the estimated ground at (x, y) is within the slope and step limits (where
+        the map holds no ground it passes: the rover's own traversability layer,
+        :mod:`planner.traversability`, refuses unknown ground)."""
         if self._terrain is None:
             self._terrain = self._terrain_grid()
-        known, ok = self._terrain
+        _, ok = self._terrain
         i, j = self._cell(x, y)
         if not (0 <= i < self.shape[0] and 0 <= j < self.shape[1]):
-            return not self.known_ground_only
-        if not known[i, j] and self.known_ground_only and self.home is not None:
-            return bool(np.hypot(x - self.home[0], y - self.home[1]) <= self.home_radius)
+            return True
         return bool(ok[i, j])
 
     def is_free(self, x: float, y: float, yaw: float, margin: bool | str = True) -> bool:

@@ -16,6 +16,7 @@ import numpy as np
 from planner.freespace import FreeSpace
 from planner.gain import GainField
 from planner.platforms import MotionModel, motion_model
+from planner.traversability import TerrainMap
 from rovergate.config import MissionConfig
 from rovergate.errors import UnknownNameError
 from rovergate.types import (
@@ -40,7 +41,8 @@ class PlanResult:
     """Candidates sent to OMPL before one was feasible."""
     reason: str
     """'best-feasible', 'rotate' (nothing feasible: turn in place), 'escape' (only the way out
-    of a spot the map now blocks) or 'stay'."""
+    of a spot the map now blocks), 'backout' (the rover backs along the way it came) or
+    'stay'."""
     rejected: PlanPath
     """Goal poses of the candidates tried and found infeasible, in the order tried."""
 
@@ -53,13 +55,16 @@ class Planner(abc.ABC):
 
     @abc.abstractmethod
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-             free: FreeSpace | None = None, contacts: np.ndarray | None = None) -> PlanResult:
+             free: FreeSpace | None = None, contacts: np.ndarray | None = None,
+             terrain: TerrainMap | None = None) -> PlanResult:
         """The motion for step ``step`` (``free``: the known free space, which the flyer
         keeps to; ``contacts``: (K, 3) points where the platform touched the scene, obstacles
-        to its collision checks though not part of the map's gain)."""
+        to its collision checks though not part of the map's gain; ``terrain``: the rover's
+        traversability layer, prepared for this step, which every motion must pass)."""
 
     def _setup(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-               free: FreeSpace | None = None, contacts: np.ndarray | None = None
+               free: FreeSpace | None = None, contacts: np.ndarray | None = None,
+               terrain: TerrainMap | None = None
                ) -> tuple[MotionModel, np.random.Generator, GainField]:
         """One step's motion model, random generator (seeded by seed and step) and gain field,
         all read from the same planner-facing map."""
@@ -70,7 +75,7 @@ class Planner(abc.ABC):
         attracting = occupancy.serving(Channel.GAIN)
         model = motion_model(cfg, xyz(blocking.points), T_map_base,
                              predicted=blocking.points["source"] == Source.PREDICTED, free=free,
-                             contacts=contacts)
+                             contacts=contacts, terrain=terrain)
         model.leave_blocked_start()
         rng = np.random.default_rng([cfg.seed, step])
         return model, rng, gain_field(cfg, xyz(attracting.points),
@@ -103,15 +108,23 @@ def plan_seed(cfg: MissionConfig, step: int, tried: int) -> int:
 
 
 def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) -> PlanResult:
-    """No candidate was feasible: turn in place if the turn is free, else stay."""
+    """No candidate was feasible: turn in place where the turn is free (a quarter turn, left
+    first; the rover also right), else leave the spot the map blocks, else back out along
+    the way the rover came (:meth:`MotionModel.backout`: checked by its traversability layer
+    alone, as it stood at every pose of it), else stay. Every motion passes the layer's ACE."""
     tried = GreedyPlanner._to_path(step, rejected, model)
-    turn = model.turn(model.current)
-    if model.is_free_turn(turn):
-        return PlanResult(motion(step, [model.current, turn], model), 0, len(rejected), "rotate",
-                          tried)
-    if model.prefix:  # leave the spot the map blocks, at least
+    for turn in model.turns(model.current):
+        if model.is_free_turn(turn) and model.admit(model.prefix + [model.current, turn]) is None:
+            return PlanResult(motion(step, [model.current, turn], model), 0, len(rejected),
+                              "rotate", tried)
+    if model.prefix and model.admit(model.prefix + [model.current]) is None:
         return PlanResult(motion(step, [model.current], model), 0, len(rejected), "escape",
                           tried)
+    start = model.state_of(T_map_base)
+    way = model.backout(start)
+    if way:
+        return PlanResult(GreedyPlanner._to_path(step, [start, *way], model), 0, len(rejected),
+                          "backout", tried)
     return PlanResult(PlanPath(step, [T_map_base]), 0, len(rejected), "stay", tried)
 
 
@@ -129,9 +142,10 @@ class GreedyPlanner(Planner):
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-             free: FreeSpace | None = None, contacts: np.ndarray | None = None) -> PlanResult:
+             free: FreeSpace | None = None, contacts: np.ndarray | None = None,
+             terrain: TerrainMap | None = None) -> PlanResult:
         cfg, pc = self.cfg, self.cfg.planner
-        model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts)
+        model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts, terrain)
         candidates = model.sample(rng, pc.n_candidates)
         gains = np.array([field.gain(field.visible(model.camera(c))) for c in candidates],
                          dtype=np.int64)
@@ -141,9 +155,11 @@ class GreedyPlanner(Planner):
         rejected = []
         for i in order[: pc.max_attempts]:
             goal = candidates[i]
+            model.refuse(goal)
             if model.is_free(goal):
                 path = model.plan(model.current, goal, seed=plan_seed(cfg, step, len(rejected)))
-                if path is not None and model.length(model.prefix + path) <= pc.max_step_m:
+                if (path is not None and model.length(model.prefix + path) <= pc.max_step_m
+                        and model.admit(model.prefix + path) is None):
                     return PlanResult(motion(step, path, model), int(gains[i]),
                                       len(rejected) + 1, "best-feasible",
                                       self._to_path(step, rejected, model))
@@ -183,9 +199,10 @@ class BeamPlanner(Planner):
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
-             free: FreeSpace | None = None, contacts: np.ndarray | None = None) -> PlanResult:
+             free: FreeSpace | None = None, contacts: np.ndarray | None = None,
+             terrain: TerrainMap | None = None) -> PlanResult:
         cfg, pc = self.cfg, self.cfg.planner
-        model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts)
+        model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts, terrain)
         dims = 3 if cfg.platform == "flyer" else 2
 
         def extend(nodes: list[_Trajectory], n: int) -> list[_Trajectory]:
@@ -195,6 +212,8 @@ class BeamPlanner(Planner):
             for node in nodes:
                 last = node.states[-1]
                 for c in model.sample(rng, n, around=last):
+                    if node is root:
+                        model.refuse(c)  # (counted by hazard where the rover's layer refuses)
                     if model.segment_free(last, c):
                         free.append((node, c))
                     elif node is root:
@@ -251,7 +270,8 @@ class BeamPlanner(Planner):
         for tried, t in enumerate(order[: pc.max_attempts]):
             goal = t.states[1]
             path = model.plan(model.current, goal, seed=plan_seed(cfg, step, tried))
-            if path is not None and model.length(model.prefix + path) <= pc.max_step_m:
+            if (path is not None and model.length(model.prefix + path) <= pc.max_step_m
+                    and model.admit(model.prefix + path) is None):
                 return PlanResult(motion(step, path, model), int(best_of_first[t.first]),
                                   tried + 1, "best-feasible",
                                   GreedyPlanner._to_path(step, rejected, model))

@@ -29,6 +29,7 @@ import numpy as np
 from planner.collision import FlyerCollisionModel, OccupancyCollisionModel
 from planner.freespace import FreeSpace
 from planner.motion import plan_r3, plan_se2
+from planner.traversability import BELLY, TerrainMap
 from rovergate.config import MissionConfig, RoverConfig
 from rovergate.geometry import camera_from_base
 from rovergate.types import Pose
@@ -52,8 +53,8 @@ class MotionModel(abc.ABC):
     """One step's view of the platform (see the module docstring)."""
 
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
-                 predicted: np.ndarray | None = None, contacts: np.ndarray | None = None
-                 ) -> None:
+                 predicted: np.ndarray | None = None, contacts: np.ndarray | None = None,
+                 ground_ref=None) -> None:
         self.cfg = cfg
         self.points = points
         self.contacts = np.zeros((0, 3)) if contacts is None else np.asarray(contacts)
@@ -61,7 +62,8 @@ class MotionModel(abc.ABC):
         self.ground = OccupancyCollisionModel(points, cfg.rover, b, cfg.planner.ground_cell_m,
                                               cfg.planner.obstacle_voxel_m,
                                               fallback_ground_z=self._fallback_ground(T_map_base),
-                                              predicted=predicted, contacts=self.contacts)
+                                              predicted=predicted, contacts=self.contacts,
+                                              ground_ref=ground_ref)
         self.current = self.state_of(T_map_base)
         self.prefix: list[State] = []
         """The escape from a blocked start: states before :attr:`current` in every motion."""
@@ -75,6 +77,22 @@ class MotionModel(abc.ABC):
         if way:
             self.prefix = [self.current, *way[:-1]]
             self.current = way[-1]
+
+    def admit(self, states: list[State]) -> str | None:
+        """The hazard the platform's traversability layer finds along the motion through
+        ``states`` (the rover's ACE, :mod:`planner.traversability`), or None: the motion may
+        be driven. The flyer has no such layer."""
+        return None
+
+    def refuse(self, state: State) -> None:
+        """Count why the traversability layer refuses a candidate the planner drops (the
+        rover's :meth:`planner.traversability.TerrainMap.why_not`; nothing on the flyer)."""
+        return None
+
+    def backout(self, start: State) -> list[State]:
+        """The rover's way back along where it came from (checked by its traversability
+        layer only), from ``start``; empty where there is none (and on the flyer)."""
+        return []
 
     def escape_way(self) -> list[State]:
         """The states an escape passes through from the blocked current one, ending in a
@@ -139,6 +157,10 @@ class MotionModel(abc.ABC):
     def turn(self, state: State) -> State:
         """The same place, looking elsewhere (the fallback when no candidate is feasible)."""
 
+    def turns(self, state: State) -> list[State]:
+        """The turns in place a platform with no feasible candidate tries, first to last."""
+        return [self.turn(state)]
+
     def is_free_turn(self, state: State) -> bool:
         """Whether turning in place from the current state to ``state`` is free, checked every
         ``TURN_CHECK_RAD`` of the turn (the current state is not judged)."""
@@ -188,18 +210,24 @@ def outside_body(points: np.ndarray, T_map_base: Pose, rover: RoverConfig,
 
 
 class RoverModel(MotionModel):
+    """The rover: a state is free when the body is clear on the planner-facing map (its
+    collision channel, predictions included: they may block) and, with a traversability
+    layer (``terrain``), on ground the rover has observed or stood on, clear of what it
+    measured (:meth:`planner.traversability.TerrainMap.free`); every motion it is sent on
+    passes that layer's ACE (:meth:`admit`)."""
+
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
                  predicted: np.ndarray | None = None, free: FreeSpace | None = None,
-                 contacts: np.ndarray | None = None) -> None:
-        # The rover's counterpart of known free space is known ground (drive_known_ground_only).
+                 contacts: np.ndarray | None = None, terrain: TerrainMap | None = None
+                 ) -> None:
         # The self filter is for map points; a contact is where the bumper touched the scene,
         # on the body's own surface when the touch was where the rover now stands: it stays,
         # and the rover escapes it (escape_way) instead of driving into it again.
         keep = outside_body(points, T_map_base, cfg.rover)
         super().__init__(cfg, points[keep], T_map_base,
-                         None if predicted is None else predicted[keep], contacts)
-        if cfg.planner.known_ground_only:
-            self.ground.drive_known_ground_only(*self.current[:2])
+                         None if predicted is None else predicted[keep], contacts,
+                         ground_ref=None if terrain is None else terrain.ground_at)
+        self.terrain = terrain
 
     @property
     def reach_m(self) -> float:
@@ -224,22 +252,44 @@ class RoverModel(MotionModel):
         return Pose.from_xyz_yaw(s[0], s[1], self.ground.ground_z(s[0], s[1]), s[2])
 
     def is_free(self, s: State) -> bool:
-        return self.ground.is_free(*s)
+        return ((self.terrain is None or self.terrain.free(*s[:3]))
+                and self.ground.is_free(*s[:3]))
+
+    def _free_xyyaw(self, x: float, y: float, yaw: float) -> bool:
+        return self.is_free((x, y, yaw))
+
+    def admit(self, states: list[State]) -> str | None:
+        return None if self.terrain is None else self.terrain.admit(states)
+
+    def refuse(self, state: State) -> None:
+        if self.terrain is not None:
+            self.terrain.why_not(*state[:3])
+
+    def backout(self, start: State) -> list[State]:
+        if self.terrain is None:
+            return []
+        box = self.inner_box()
+        return self.terrain.backout(start, self.cfg.planner.max_step_m,
+                                    self.cfg.traverse.backout_steps,
+                                    extra_ok=lambda s: _inside(s, box))
 
     def plan(self, start: State, goal: State, seed: int) -> list[State] | None:
-        return plan_se2(start, goal, self.ground.is_free, self.inner_box(), seed=seed,
+        return plan_se2(start, goal, self._free_xyyaw, self.inner_box(), seed=seed,
                         max_checks=self.cfg.planner.ompl_max_checks)
 
     def segment_free(self, a: State, b: State) -> bool:
         dyaw = (b[2] - a[2] + np.pi) % (2 * np.pi) - np.pi
         for f in self._steps(a, b, 2)[1:]:
-            if not self.ground.is_free(a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]),
-                                       a[2] + f * dyaw):
+            if not self.is_free((a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]),
+                                 a[2] + f * dyaw)):
                 return False
         return True
 
     def turn(self, s: State) -> State:
         return (s[0], s[1], s[2] + np.pi / 2)
+
+    def turns(self, s: State) -> list[State]:
+        return [self.turn(s), (s[0], s[1], s[2] - np.pi / 2)]
 
     def escape_way(self) -> list[State]:
         """The shortest of: a turn in place of at most 90 degrees (or none), then a straight
@@ -264,7 +314,8 @@ class RoverModel(MotionModel):
             # The narrowed body allows for the map's error, not for a contact's: a contact
             # is exact, and the way may not come nearer to one than where it starts.
             return (_inside(s, box) and self.ground.is_free(*s, margin="escape")
-                    and self._contact_gap(s, near) >= start_gap - 1e-9)
+                    and self._contact_gap(s, near) >= start_gap - 1e-9
+                    and (self.terrain is None or self.terrain.assess(*s) in (None, BELLY)))
         best: tuple[float, list[State]] | None = None
         for turn in np.radians(ESCAPE_TURNS_DEG):
             n = max(int(np.ceil(abs(turn) / TURN_CHECK_RAD)), 1)
@@ -395,8 +446,8 @@ class FlyerModel(MotionModel):
         than that takes several steps (the end is then still outside the band, and the step
         is spent on the way there). Otherwise, or if that way is blocked: away from the
         nearest map point, or up or down, at most ``ESCAPE_M``: every state of the way keeps
-        the true sphere (no margin) off the map, moves no nearer to its nearest point and
-        stays in known free space; the end is valid."""
+        the true sphere (no margin) off the map, comes no nearer to the map than the escape's
+        start is and stays in known free space; the end is valid."""
         p0 = np.asarray(self.current[:3], dtype=np.float64)
         if self.sphere.is_free(*p0, band=False):
             end = self._back_into_band(p0)
@@ -408,16 +459,17 @@ class FlyerModel(MotionModel):
             directions.append((p0 - near) / np.linalg.norm(p0 - near))
         directions += [np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])]
         box = self.inner_box()
+        start = self.sphere.distance(p0)
         for u in directions:
-            last = self.sphere.distance(p0)
             for d in np.arange(ESCAPE_STEP_M, ESCAPE_M + 1e-9, ESCAPE_STEP_M):
                 p = p0 + d * u
                 dist = self.sphere.distance(p)
-                if (not _inside(p, box) or dist < last - 1e-9 or dist <= self.cfg.flyer.radius_m
+                # Never nearer to the map than where the escape starts (it may come nearer
+                # between two checks than at the one before, as a way round a corner does).
+                if (not _inside(p, box) or dist < start - 1e-9 or dist <= self.cfg.flyer.radius_m
                         or (self.sphere.free is not None
                             and not self.sphere.free.is_free(*p))):
                     break
-                last = dist
                 s = (*(float(v) for v in p), *self.current[3:])
                 if self.is_free(s):
                     return s
@@ -448,9 +500,12 @@ class FlyerModel(MotionModel):
 
 def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
                  predicted: np.ndarray | None = None, free: FreeSpace | None = None,
-                 contacts: np.ndarray | None = None) -> MotionModel:
+                 contacts: np.ndarray | None = None, terrain: TerrainMap | None = None
+                 ) -> MotionModel:
     """The motion model of ``cfg.platform`` for one step; ``predicted`` marks the points that
     are predictions (the map's ``source``); ``free`` is the known free space (the flyer keeps
-    to it); ``contacts`` are where the platform touched the scene (obstacles from then on)."""
-    return (FlyerModel if cfg.platform == "flyer" else RoverModel)(cfg, points, T_map_base,
-                                                                   predicted, free, contacts)
+    to it); ``contacts`` are where the platform touched the scene (obstacles from then on);
+    ``terrain`` is the rover's traversability layer (prepared for this step)."""
+    if cfg.platform == "flyer":
+        return FlyerModel(cfg, points, T_map_base, predicted, free, contacts)
+    return RoverModel(cfg, points, T_map_base, predicted, free, contacts, terrain)

@@ -7,11 +7,14 @@ from __future__ import annotations
 import time
 from typing import Any, ClassVar
 
+import numpy as np
+
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
+from rovergate.geometry import HAZCAMS
 from rovergate.graph import MODULES, Module
 from rovergate.module import Ask, StepOutput
-from rovergate.types import XYZ_DTYPE, PoseWithCovariance, make_cloud
+from rovergate.types import XYZ_DTYPE, CameraIntrinsics, PoseWithCovariance, make_cloud
 
 
 class SimNode:
@@ -21,6 +24,8 @@ class SimNode:
 
     def __init__(self, cfg: MissionConfig, ask: Ask | None = None) -> None:
         self.sim = RoverSim(cfg)
+        h = cfg.hazcam
+        self.hazcam_info = CameraIntrinsics.from_fov(h.width_px, h.height_px, h.vfov_deg)
 
     def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         out = StepOutput()
@@ -35,8 +40,12 @@ class SimNode:
                          ("camera_info", (step, frame.intrinsics)),
                          ("pose", (step, frame.T_map_camera)),
                          ("pose_cov", (step, PoseWithCovariance(frame.T_map_camera,
-                                                                frame.covariance))),
-                         ("base_pose", (step, frame.T_map_base))]
+                                                                frame.covariance)))]
+        for end in HAZCAMS:  # 0 x 0 where the platform has none
+            out.messages += [(f"hazcam_{end}", (step, frame.hazcams.get(
+                                 end, np.zeros((0, 0), dtype=np.float32)))),
+                             (f"hazcam_{end}_info", (step, self.hazcam_info))]
+        out.messages.append(("base_pose", (step, frame.T_map_base)))
         return out
 
     def restore(self, step: int, inputs: dict[str, Any]) -> None:

@@ -23,6 +23,9 @@ from rovergate.geometry import rot_z
 from rovergate.types import CameraIntrinsics
 
 _DEPTH_STREAM, _DRIFT_STREAM = 0xD0, 0xD1
+#: The hazard cameras' own streams (front, rear): their noise and dropout are drawn apart
+#: from the mast's, so adding them changes no draw of the mast camera.
+HAZCAM_STREAMS = {"front": 0xE0, "rear": 0xE1}
 
 
 def incidence_cos(depth: np.ndarray, k: CameraIntrinsics) -> np.ndarray:
@@ -68,12 +71,14 @@ class Sensing:
             lost |= rng.random(shape) < c.dropout_pixel_prob
         return lost
 
-    def degrade(self, depth: np.ndarray, k: CameraIntrinsics, step: int) -> np.ndarray:
-        """The depth image as the degraded sensor returns it (a new array)."""
+    def degrade(self, depth: np.ndarray, k: CameraIntrinsics, step: int,
+                stream: int = _DEPTH_STREAM) -> np.ndarray:
+        """The depth image as the degraded sensor returns it (a new array); ``stream`` keeps
+        each camera's draws apart (:data:`HAZCAM_STREAMS`)."""
         if not self.degrades_depth:
             return depth
         c = self.cfg
-        rng = np.random.default_rng([self.seed, step, _DEPTH_STREAM])
+        rng = np.random.default_rng([self.seed, step, stream])
         out = depth.astype(np.float32).copy()
         if c.grazing_max_deg < 90:
             cos = incidence_cos(depth, k)

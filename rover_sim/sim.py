@@ -18,11 +18,17 @@ from rover_sim.catalog import load_scene
 from rover_sim.flyer import FlyerBody
 from rover_sim.rover import RoverBody
 from rover_sim.scene import Scene
-from rover_sim.sensing import Sensing
-from rover_sim.world import PyBulletWorld
+from rover_sim.sensing import HAZCAM_STREAMS, Sensing
+from rover_sim.world import DepthCamera, PyBulletWorld
 from rovergate.config import MissionConfig
 from rovergate.errors import UnknownNameError
-from rovergate.geometry import camera_from_base, check_platform, voxel_first_points
+from rovergate.geometry import (
+    HAZCAMS,
+    camera_from_base,
+    check_platform,
+    hazcam_from_base,
+    voxel_first_points,
+)
 from rovergate.types import ExecutionReport, PlanPath, Pose, SensorFrame
 
 log = logging.getLogger("rovergate.sim")
@@ -53,6 +59,8 @@ class RoverSim:
             log.warning("start %r of %s touches the scene for this platform configuration",
                         cfg.start, self.scene.name)
         self.world = PyBulletWorld(self.scene, cfg.sensor, None if self.flying else cfg.rover)
+        self.hazcam = (DepthCamera.of(cfg.hazcam, self.world.client)
+                       if cfg.hazcam.enabled and not self.flying else None)
         self.sensing = Sensing(cfg.sensing, cfg.seed)
         self._drift = np.eye(4)
         self._step = 0
@@ -76,7 +84,19 @@ class RoverSim:
         return SensorFrame(step, depth, self.world.intrinsics,
                            Pose.from_matrix(self._drift @ T_cam),
                            Pose.from_matrix(self._drift @ T_base),
-                           self.sensing.pose_covariance(step, lever))
+                           self.sensing.pose_covariance(step, lever),
+                           self.render_hazcams(T_base, step))
+
+    def render_hazcams(self, T_base: np.ndarray, step: int) -> dict[str, np.ndarray]:
+        """The hazard cameras' depth at the true base pose, degraded as the mast's is (their
+        own draws); empty without them."""
+        if self.hazcam is None:
+            return {}
+        return {name: self.sensing.degrade(
+                    self.world.render_depth(hazcam_from_base(T_base, self.cfg.hazcam, name),
+                                            self.hazcam),
+                    self.hazcam.intrinsics, step, HAZCAM_STREAMS[name])
+                for name in HAZCAMS}
 
     def restore(self, step: int, path: PlanPath | None) -> None:
         """Redo step ``step`` without rendering (a restarted simulator replaying its past):

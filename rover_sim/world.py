@@ -2,16 +2,20 @@
 
 pybullet runs in DIRECT mode (no window) and renders with its CPU TinyRenderer. The rover is
 moved kinematically (its pose is set, no dynamics). Pixels that see the rover itself are
-returned as NaN, like a real depth camera's self-filter.
+returned as NaN, like a real depth camera's self-filter. Two kinds of camera render: the
+mast's (:class:`rovergate.config.SensorConfig`) and the rover's hazard cameras
+(:class:`rovergate.config.HazcamConfig`), each with its own resolution, field and ranges.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import pybullet as pb
 
 from rover_sim.scene import Scene
-from rovergate.config import RoverConfig, SensorConfig
+from rovergate.config import HazcamConfig, RoverConfig, SensorConfig
 from rovergate.geometry import matrix_to_quat
 from rovergate.types import CameraIntrinsics
 
@@ -29,6 +33,27 @@ def add_scene(client: int, scene: Scene) -> None:
             pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=client)
 
 
+@dataclass(frozen=True)
+class DepthCamera:
+    """What rendering needs of one camera: its image, its projection, its valid ranges."""
+
+    intrinsics: CameraIntrinsics
+    min_range_m: float
+    max_range_m: float
+    far_m: float
+    projection: tuple
+
+    @classmethod
+    def of(cls, cfg: SensorConfig | HazcamConfig, client: int) -> DepthCamera:
+        far = cfg.max_range_m * 1.5
+        return cls(CameraIntrinsics.from_fov(cfg.width_px, cfg.height_px, cfg.vfov_deg),
+                   cfg.min_range_m, cfg.max_range_m, far,
+                   pb.computeProjectionMatrixFOV(fov=cfg.vfov_deg,
+                                                 aspect=cfg.width_px / cfg.height_px,
+                                                 nearVal=NEAR_M, farVal=far,
+                                                 physicsClientId=client))
+
+
 class PyBulletWorld:
     """Owns one pybullet client with the scene and the rover in it."""
 
@@ -39,12 +64,8 @@ class PyBulletWorld:
         c = self.client
         self.rover_id = self.mast_id = -1
         add_scene(c, scene)
-        self.far_m = sensor.max_range_m * 1.5
-        self.intrinsics = CameraIntrinsics.from_fov(sensor.width_px, sensor.height_px,
-                                                    sensor.vfov_deg)
-        self._projection = pb.computeProjectionMatrixFOV(
-            fov=sensor.vfov_deg, aspect=sensor.width_px / sensor.height_px, nearVal=NEAR_M,
-            farVal=self.far_m, physicsClientId=c)
+        self.mast = DepthCamera.of(sensor, c)
+        self.intrinsics = self.mast.intrinsics
         if rover is not None:
             self._add_rover(sensor, rover)
 
@@ -73,9 +94,13 @@ class PyBulletWorld:
             pb.resetBasePositionAndOrientation(body, T_map_base[:3, 3].tolist(), q.tolist(),
                                                physicsClientId=self.client)
 
-    def render_depth(self, T_map_camera: np.ndarray) -> np.ndarray:
-        """(H, W) float32 z-depth in metres from the optical frame pose; NaN without a return."""
-        s = self.sensor
+    def render_depth(self, T_map_camera: np.ndarray, camera: DepthCamera | None = None
+                     ) -> np.ndarray:
+        """(H, W) float32 z-depth in metres from the optical frame pose of ``camera`` (the
+        mast's by default); +Inf where nothing is within range, NaN where the return is
+        invalid."""
+        cam = camera or self.mast
+        k = cam.intrinsics
         # TinyRenderer never returns when a triangle's plane passes exactly through the eye
         # (an axis-aligned face and an eye on the same round coordinate): move the eye by a
         # tenth of a millimetre in an odd direction, which no scene lines up with.
@@ -84,15 +109,16 @@ class PyBulletWorld:
         view = pb.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), (-down).tolist(),
                                     physicsClientId=self.client)
         _, _, _, zbuf, seg = pb.getCameraImage(
-            s.width_px, s.height_px, view, self._projection, renderer=pb.ER_TINY_RENDERER,
+            k.width, k.height, view, cam.projection, renderer=pb.ER_TINY_RENDERER,
             physicsClientId=self.client)
-        zbuf = np.asarray(zbuf, dtype=np.float64).reshape(s.height_px, s.width_px)
-        seg = np.asarray(seg).reshape(s.height_px, s.width_px)
-        depth = self.far_m * NEAR_M / (self.far_m - (self.far_m - NEAR_M) * zbuf)
+        zbuf = np.asarray(zbuf, dtype=np.float64).reshape(k.height, k.width)
+        seg = np.asarray(seg).reshape(k.height, k.width)
+        far = cam.far_m
+        depth = far * NEAR_M / (far - (far - NEAR_M) * zbuf)
         # REP 117: +Inf where nothing is within the maximum range (the ray passed through all
         # of it), NaN where there is no valid return (too near, or the rover's own body).
-        nothing = (zbuf >= 1.0 - 1e-7) | (depth > s.max_range_m)
-        invalid = depth < s.min_range_m
+        nothing = (zbuf >= 1.0 - 1e-7) | (depth > cam.max_range_m)
+        invalid = depth < cam.min_range_m
         if self.rover_id >= 0:
             invalid |= (seg == self.rover_id) | (seg == self.mast_id)
         depth = np.where(nothing, np.inf, depth)

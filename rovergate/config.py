@@ -108,6 +108,69 @@ class RoverConfig:
 
 
 @dataclass
+class HazcamConfig:
+    """The rover's body-mounted hazard cameras: one at the front of the body looking ahead
+    and down, one at the back looking behind and down (as Perseverance's four hazcams, here
+    one depth camera at each end). They see the ground the mast camera cannot: from the
+    body's edge out to a few metres. Optical frames ``hazcam_front_optical`` and
+    ``hazcam_rear_optical``; mounted ``forward_m`` ahead of (behind) the rover's centre,
+    ``height_m`` above the ground under it, ``tilt_deg`` down."""
+
+    enabled: bool = True
+    """Render and publish them (rover only; the flyer has none, and publishes empty images)."""
+    width_px: int = 128
+    """Image width in pixels."""
+    height_px: int = 96
+    """Image height in pixels."""
+    vfov_deg: float = 90.0
+    """Vertical field of view (horizontal: 106 degrees at 128 x 96)."""
+    min_range_m: float = 0.2
+    """Returns nearer than this are dropped (NaN)."""
+    max_range_m: float = 5.0
+    """Returns farther than this are dropped; the ground a hazard camera sees ends here."""
+    height_m: float = 0.8
+    """Height of each camera above the ground under the rover's centre."""
+    forward_m: float = 0.5
+    """Distance of each camera ahead of (front) or behind (rear) the rover's centre."""
+    tilt_deg: float = -45.0
+    """Tilt below the horizon; with the 90-degree field, the lowest rows look straight down."""
+    feed_map: bool = True
+    """Also integrate their frames into the observed surface S_t and the learned model's
+    occupancy grid (so into coverage and the model's input). Off (``--hazcam.no-feed-map``):
+    they feed the traversability layer only, as the paper's single-camera setting has it; on
+    the stuck starts of issue 26 the learned map then walls the rover in (README, "Driving").
+    The gate's exposure counts and the points' views stay the mast camera's either way."""
+
+
+@dataclass
+class TraverseConfig:
+    """The rover's traversability layer (planner/traversability.py): a 2.5D height map from
+    observed returns only, and an ACE-like check of every motion the rover drives."""
+
+    enabled: bool = True
+    """Check motions on it (off: the map's own ground estimate alone, as before issue 26)."""
+    cell_m: float = 0.1
+    """Cell of the height map."""
+    mast_range_m: float = 8.0
+    """Mast returns farther than this are not used (sparse along the ground, and no motion of
+    one step reaches that far)."""
+    max_roll_deg: float = 20.0
+    """Steepest side slope the rover drives (roll of the plane through its wheels)."""
+    max_pitch_deg: float = 25.0
+    """Steepest slope along its heading (pitch of that plane)."""
+    wheel_drop_m: float = 0.18
+    """Largest drop or rise under a wheel: the ground in a wheel's patch may span this much,
+    and the wheels may depart this far from their plane."""
+    belly_margin_m: float = 0.07
+    """Nothing under the body may stand higher over the wheels' plane than the body's ground
+    clearance less this (0.25 - 0.07 = 0.18 m)."""
+    side_margin_m: float = 0.1
+    """The footprint checked is the body widened by this on every side."""
+    backout_steps: int = 6
+    """How many past poses a rover with no forward motion may back out along."""
+
+
+@dataclass
 class FlyerConfig:
     """The free-flying camera (the paper's benchmark platform): a sphere with a camera."""
 
@@ -257,10 +320,6 @@ class PlannerConfig:
     the published study's runs."""
     ompl_max_checks: int = 3000
     """State-validity checks one OMPL query may spend (a count, not a time, for determinism)."""
-    known_ground_only: bool = True
-    """Rover: drive only where the map has ground under the wheels (observed or predicted),
-    except within a body length of where it stands; the mast camera cannot see the ground
-    next to the rover, and unknown is not free."""
     known_free_only: bool = True
     """Flyer: fly only through space known to be free, where a camera ray passed or the
     flyer has been (planner/freespace.py); unknown is not free."""
@@ -407,6 +466,8 @@ class MissionConfig:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     sensing: SensingConfig = field(default_factory=SensingConfig)
     rover: RoverConfig = field(default_factory=RoverConfig)
+    hazcam: HazcamConfig = field(default_factory=HazcamConfig)
+    traverse: TraverseConfig = field(default_factory=TraverseConfig)
     flyer: FlyerConfig = field(default_factory=FlyerConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
     gate: GateConfig = field(default_factory=GateConfig)
@@ -441,6 +502,9 @@ def check_values(cfg: MissionConfig) -> None:
             ("--planner.beam-depth", cfg.planner.beam_depth, 1),
             ("--planner.max-attempts", cfg.planner.max_attempts, 1),
             ("--planner.ompl-max-checks", cfg.planner.ompl_max_checks, 1),
+            ("--hazcam.width-px", cfg.hazcam.width_px, 8),
+            ("--hazcam.height-px", cfg.hazcam.height_px, 8),
+            ("--traverse.backout-steps", cfg.traverse.backout_steps, 0),
             ("--eval.n-samples", cfg.eval.n_samples, 1)):
         if value < least:
             raise ConfigError(f"{flag} must be at least {least}, got {value}")
@@ -457,7 +521,11 @@ def check_values(cfg: MissionConfig) -> None:
             ("--planner.free-voxel-m", cfg.planner.free_voxel_m),
             ("--planner.flyer-margin-m", cfg.planner.flyer_margin_m),
             ("--rover.check-spacing-m", cfg.rover.check_spacing_m),
-            ("--sensor.min-range-m", cfg.sensor.min_range_m)):
+            ("--sensor.min-range-m", cfg.sensor.min_range_m),
+            ("--hazcam.min-range-m", cfg.hazcam.min_range_m),
+            ("--traverse.cell-m", cfg.traverse.cell_m),
+            ("--traverse.mast-range-m", cfg.traverse.mast_range_m),
+            ("--traverse.wheel-drop-m", cfg.traverse.wheel_drop_m)):
         if not value > 0:
             raise ConfigError(f"{flag} must be positive, got {value}")
     planner_programs(cfg.planner)
@@ -479,9 +547,13 @@ def check_values(cfg: MissionConfig) -> None:
     if not 0 <= cfg.planner.beam_discount <= 1:
         raise ConfigError(f"--planner.beam-discount must be between 0 and 1, got "
                           f"{cfg.planner.beam_discount}")
-    if not 0 < cfg.sensor.vfov_deg < 180:
-        raise ConfigError(f"--sensor.vfov-deg must be between 0 and 180, got "
-                          f"{cfg.sensor.vfov_deg}")
+    for flag, value in (("--sensor.vfov-deg", cfg.sensor.vfov_deg),
+                        ("--hazcam.vfov-deg", cfg.hazcam.vfov_deg)):
+        if not 0 < value < 180:
+            raise ConfigError(f"{flag} must be between 0 and 180, got {value}")
+    if not cfg.hazcam.max_range_m > cfg.hazcam.min_range_m:
+        raise ConfigError(f"--hazcam.max-range-m ({cfg.hazcam.max_range_m}) must exceed "
+                          f"--hazcam.min-range-m ({cfg.hazcam.min_range_m})")
 
 
 def planner_programs(planner: PlannerConfig) -> dict[str, str]:

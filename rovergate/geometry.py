@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from rovergate.config import SensorConfig
+from rovergate.config import HazcamConfig, SensorConfig
 from rovergate.errors import UnknownNameError
 
 if TYPE_CHECKING:
@@ -62,6 +62,22 @@ def camera_from_base(T_map_base: np.ndarray, sensor: SensorConfig,
     T_mast_optical = np.eye(4)
     T_mast_optical[:3, :3] = R_BODY_OPTICAL
     return T_map_base @ T_base_mast @ T_mast_optical
+
+
+#: The rover's hazard cameras, by the name their topics and optical frames carry.
+HAZCAMS = ("front", "rear")
+
+
+def hazcam_from_base(T_map_base: np.ndarray, hazcam: HazcamConfig, which: str) -> np.ndarray:
+    """(4, 4) optical-frame pose of the ``front`` or ``rear`` hazard camera for a rover base
+    pose: ``forward_m`` ahead of (behind) the centre, ``height_m`` up, facing out of that end
+    of the body and tilted ``tilt_deg`` (negative: down)."""
+    back = {"front": False, "rear": True}[which]
+    T_base_cam = np.eye(4)
+    T_base_cam[:3, :3] = (rot_z(np.pi if back else 0.0) @ rot_y(-np.radians(hazcam.tilt_deg))
+                          @ R_BODY_OPTICAL)
+    T_base_cam[:3, 3] = [-hazcam.forward_m if back else hazcam.forward_m, 0.0, hazcam.height_m]
+    return T_map_base @ T_base_cam
 
 
 def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:

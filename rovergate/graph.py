@@ -58,6 +58,15 @@ TOPICS: dict[str, Topic] = {
                       "drift"),
     "base_pose": Topic("sensor/base_pose", "geometry_msgs/msg/PoseStamped",
                        "rover base (x forward, y left, z up) in frame `map`"),
+    **{f"hazcam_{end}": Topic(f"sensor/hazcam_{end}/depth", "sensor_msgs/msg/Image",
+                              f"the {end} hazard camera's depth (32FC1, REP 117, frame "
+                              f"`hazcam_{end}_optical`; its pose: `base_pose` and the "
+                              f"`--hazcam` mounting); 0 x 0 on the flyer, which has none")
+       for end in ("front", "rear")},
+    **{f"hazcam_{end}_info": Topic(f"sensor/hazcam_{end}/camera_info",
+                                   "sensor_msgs/msg/CameraInfo",
+                                   f"the {end} hazard camera's intrinsics")
+       for end in ("front", "rear")},
     "surface": Topic("map/surface", "sensor_msgs/msg/PointCloud2",
                      "accumulated observed surface S_t: float32 `x, y, z`; uint16 `views` "
                      "(frames that saw the voxel)"),
@@ -74,6 +83,13 @@ TOPICS: dict[str, Topic] = {
     "rejected": Topic("plan/rejected", "nav_msgs/msg/Path",
                       "goal base poses of the candidate motions the planner tried and found "
                       "infeasible this step, in the order tried (evaluation of its decisions)"),
+    "traversability": Topic("map/traversability", "nav_msgs/msg/OccupancyGrid",
+                            "the rover's traversability map around it (from observed returns "
+                            "only: -1 unknown, 0 clear, 100 an obstacle to the body), "
+                            "0.1 m cells; 0 x 0 on the flyer"),
+    "traverse": Topic("plan/traverse", "rovergate_msgs/msg/TraverseReport",
+                      "what the traversability layer refused this step, by hazard, and the "
+                      "planner's choice (best-feasible, rotate, escape, backout, stay)"),
     "execution": Topic("state/execution", "rovergate_msgs/msg/ExecutionReport",
                        "what the simulator executed: collided, collision samples, minimum "
                        "clearance, length driven"),
@@ -159,16 +175,19 @@ class Module:
 MODULES: dict[str, Module] = {m.name: m for m in [
     Module("sim", "the simulator: drives the path of step t-1, renders step t, serves truth",
            inputs={"tick": Input("status"), "path": Input("path", lag=1)},
-           outputs=("execution", "depth", "camera_info", "pose", "pose_cov", "base_pose"),
+           outputs=("execution", "depth", "camera_info", "pose", "pose_cov", "hazcam_front",
+                    "hazcam_front_info", "hazcam_rear", "hazcam_rear_info", "base_pose"),
            stages=("execute", "render"), replay=("path",),
            serves=("truth_surface", "truth_occupancy"),
            reads=("scene", "platform", "start", "seed", "sensor", "sensing", "rover", "flyer",
-                  "eval", "mapper")),
+                  "eval", "mapper", "hazcam")),
     Module("mapper", "the mapper: depth into S_t, and the learned prediction",
            inputs={"depth": Input("depth"), "info": Input("camera_info"),
-                   "pose": Input("pose"), "base": Input("base_pose")},
+                   "pose": Input("pose"), "front": Input("hazcam_front"),
+                   "rear": Input("hazcam_rear"), "base": Input("base_pose")},
            outputs=("surface", "predicted"), stages=("integrate",),
-           replay=("depth", "info", "pose", "base"), reads=("condition", "scene", "mapper")),
+           replay=("depth", "info", "pose", "front", "rear", "base"),
+           reads=("condition", "scene", "mapper", "hazcam", "platform")),
     Module("gate", "the gate: the planner-facing occupancy of the mission's condition",
            inputs={"surface": Input("surface"), "predicted": Input("predicted"),
                    "pose": Input("pose_cov"), "info": Input("camera_info"),
@@ -177,17 +196,22 @@ MODULES: dict[str, Module] = {m.name: m for m in [
            asks=("truth_occupancy",),
            reads=("condition", "scene", "gate", "sensor", "mapper"),
            last_step_offset=-1),
-    Module("planner", "the planner: the next motion from the planner-facing map",
+    Module("planner", "the planner: the next motion from the planner-facing map, checked on "
+           "the rover's traversability layer",
            inputs={"map": Input("planner_map"), "base": Input("base_pose"),
                    "depth": Input("depth"), "pose": Input("pose"),
-                   "info": Input("camera_info"), "execution": Input("execution", lag=1)},
-           outputs=("rejected", "path"), stages=("plan",),
-           replay=("base", "depth", "pose", "info", "execution"),
-           reads=("scene", "platform", "seed", "sensor", "rover", "flyer", "planner", "mapper"),
+                   "info": Input("camera_info"), "front": Input("hazcam_front"),
+                   "rear": Input("hazcam_rear"), "execution": Input("execution", lag=1)},
+           outputs=("traversability", "traverse", "rejected", "path"),
+           stages=("traverse", "plan"),
+           replay=("base", "depth", "pose", "info", "front", "rear", "execution"),
+           reads=("scene", "platform", "seed", "sensor", "rover", "flyer", "planner", "mapper",
+                  "hazcam", "traverse"),
            last_step_offset=-1),
     Module("mission", "the mission manager: the clock, coverage, the record, the ground link",
            inputs={"path": Input("path", lag=1), "rejected": Input("rejected", lag=1),
                    "execution": Input("execution", lag=1),
+                   "traverse": Input("traverse", lag=1),
                    "predicted": Input("predicted", lag=1),
                    "planner_map": Input("planner_map", lag=1),
                    "surface": Input("surface"), "base": Input("base_pose")},

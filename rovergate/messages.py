@@ -41,10 +41,13 @@ from rovergate.types import (
     PoseWithCovariance,
     StepTiming,
     TelemetryFrame,
+    TraversabilityGrid,
+    TraverseReport,
 )
 
 PROJECT_TYPES = ("MissionStatus", "ExecutionReport", "StepTiming", "TelemetryFrame",
-                 "DownlinkAck", "GroundCommand", "CommandAck", "MissionEvent")
+                 "DownlinkAck", "GroundCommand", "CommandAck", "MissionEvent",
+                 "TraverseReport")
 
 
 #: The largest messages a reader accepts. A payload over MAX_PAYLOAD_BYTES is refused before
@@ -90,12 +93,20 @@ def _step(header) -> int:
 
 # --- images ---------------------------------------------------------------------------------
 
-def depth_to_ros(step: int, depth_m: np.ndarray):
+def depth_to_ros(step: int, depth_m: np.ndarray, frame_id: str = "camera"):
     depth = np.ascontiguousarray(depth_m, dtype="<f4")
     h, w = depth.shape
     return _T["sensor_msgs/msg/Image"](
-        header=_header(step, "camera"), height=h, width=w, encoding="32FC1", is_bigendian=0,
+        header=_header(step, frame_id), height=h, width=w, encoding="32FC1", is_bigendian=0,
         step=4 * w, data=depth.view(np.uint8).ravel())
+
+
+def hazcam_from_ros(msg) -> tuple[int, np.ndarray]:
+    """A hazard camera's depth: as :func:`depth_from_ros`, and 0 x 0 (a platform without
+    hazard cameras) is a valid, empty image."""
+    if msg.height == 0 and msg.width == 0 and len(msg.data) == 0 and msg.encoding == "32FC1":
+        return _step(msg.header), np.zeros((0, 0), dtype=np.float32)
+    return depth_from_ros(msg)
 
 
 def depth_from_ros(msg) -> tuple[int, np.ndarray]:
@@ -115,13 +126,13 @@ def depth_from_ros(msg) -> tuple[int, np.ndarray]:
 
 # --- camera info ----------------------------------------------------------------------------
 
-def camera_info_to_ros(step: int, k: CameraIntrinsics):
+def camera_info_to_ros(step: int, k: CameraIntrinsics, frame_id: str = "camera"):
     K = np.array([k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1], dtype=np.float64)
     P = np.array([k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1, 0], dtype=np.float64)
     roi = _T["sensor_msgs/msg/RegionOfInterest"](
         x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return _T["sensor_msgs/msg/CameraInfo"](
-        header=_header(step, "camera"), height=k.height, width=k.width,
+        header=_header(step, frame_id), height=k.height, width=k.width,
         distortion_model="plumb_bob", d=np.zeros(5), k=K, r=np.eye(3).ravel(), p=P,
         binning_x=0, binning_y=0, roi=roi)
 
@@ -283,6 +294,44 @@ def _contact(p) -> tuple[float, float, float] | None:
     return None if np.isnan(xyz[0]) else xyz
 
 
+_HAZARD_FIELDS = {"unknown": "refused_unknown", "wheel-drop": "refused_wheel_drop",
+                  "tilt": "refused_tilt", "belly": "refused_belly"}
+
+
+def traverse_to_ros(r: TraverseReport):
+    return _T["rovergate_msgs/msg/TraverseReport"](
+        header=_header(r.step), step=r.step, reason=r.reason, known_cells=int(r.known_cells),
+        **{f: int(r.refused.get(k, 0)) for k, f in _HAZARD_FIELDS.items()})
+
+
+def traverse_from_ros(m) -> TraverseReport:
+    return TraverseReport(int(m.step), {k: int(getattr(m, f)) for k, f in _HAZARD_FIELDS.items()},
+                          str(m.reason), int(m.known_cells))
+
+
+def grid_to_ros(g: TraversabilityGrid):
+    h, w = g.cells.shape
+    origin = _T["geometry_msgs/msg/Pose"](
+        position=_T["geometry_msgs/msg/Point"](x=float(g.origin_xy[0]), y=float(g.origin_xy[1]),
+                                               z=0.0),
+        orientation=_T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+    info = _T["nav_msgs/msg/MapMetaData"](
+        map_load_time=_T["builtin_interfaces/msg/Time"](sec=int(g.step), nanosec=0),
+        resolution=float(g.resolution_m), width=w, height=h, origin=origin)
+    return _T["nav_msgs/msg/OccupancyGrid"](
+        header=_header(g.step), info=info,
+        data=np.ascontiguousarray(g.cells, dtype=np.int8).ravel())
+
+
+def grid_from_ros(m) -> TraversabilityGrid:
+    h, w = int(m.info.height), int(m.info.width)
+    if h * w > MAX_IMAGE_PIXELS or len(m.data) != h * w:
+        raise MessageError(f"occupancy grid of {w}x{h} carries {len(m.data)} cells")
+    return TraversabilityGrid(_step(m.header), np.asarray(m.data, dtype=np.int8).reshape(h, w),
+                              float(m.info.resolution),
+                              (float(m.info.origin.position.x), float(m.info.origin.position.y)))
+
+
 def timing_to_ros(t: StepTiming):
     return _T["rovergate_msgs/msg/StepTiming"](
         header=_header(t.step), step=t.step, module=t.module, compute_s=float(t.compute_s),
@@ -366,6 +415,11 @@ def _cloud_codec(dtype: np.dtype):
 _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]] = {
     "depth": (lambda v: depth_to_ros(*v), depth_from_ros),
     "camera_info": (lambda v: camera_info_to_ros(*v), camera_info_from_ros),
+    **{f"hazcam_{end}": (lambda v, f=f"hazcam_{end}_optical": depth_to_ros(*v, frame_id=f),
+                         hazcam_from_ros) for end in ("front", "rear")},
+    **{f"hazcam_{end}_info": (lambda v, f=f"hazcam_{end}_optical":
+                              camera_info_to_ros(*v, frame_id=f), camera_info_from_ros)
+       for end in ("front", "rear")},
     "pose": (lambda v: pose_to_ros(*v), pose_from_ros),
     "pose_cov": (lambda v: pose_cov_to_ros(*v), pose_cov_from_ros),
     "base_pose": (lambda v: pose_to_ros(*v), pose_from_ros),
@@ -375,6 +429,8 @@ _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]
     "path": (path_to_ros, _with_step(path_from_ros)),
     "rejected": (path_to_ros, _with_step(path_from_ros)),
     "execution": (execution_to_ros, _with_step(execution_from_ros)),
+    "traverse": (traverse_to_ros, _with_step(traverse_from_ros)),
+    "traversability": (grid_to_ros, _with_step(grid_from_ros)),
     "status": (status_to_ros, _with_step(status_from_ros)),
     "timing": (timing_to_ros, _with_step(timing_from_ros)),
     "truth_surface": _cloud_codec(XYZ_DTYPE),
@@ -420,9 +476,10 @@ def decode_item(kind: str, msgtype: str, payload: bytes) -> Any:
 
 
 #: Topics whose value is written ``(step, value)``; the others carry their step themselves.
-_STEP_PAIRS = frozenset({"depth", "camera_info", "pose", "pose_cov", "base_pose", "surface",
-                         "predicted",
-                         "truth_surface", "truth_occupancy"})
+_STEP_PAIRS = frozenset({"depth", "camera_info", "hazcam_front", "hazcam_rear",
+                         "hazcam_front_info", "hazcam_rear_info", "pose", "pose_cov",
+                         "base_pose", "surface", "predicted", "truth_surface",
+                         "truth_occupancy"})
 
 
 def stamped(topic: str, value: Any) -> tuple[int, Any]:

@@ -105,6 +105,10 @@ class SensorFrame:
     T_map_base: Pose
     covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
     """(6, 6) covariance of the published camera pose (drift model; zeros without drift)."""
+    hazcams: dict[str, np.ndarray] = field(default_factory=dict)
+    """The hazard cameras' depth images by name (``front``, ``rear``), degraded as the mast's;
+    empty for a platform without them. Their poses follow from the base pose
+    (:func:`rovergate.geometry.hazcam_from_base`)."""
 
 
 #: dtype of one point of the observed surface S_t on ``map/surface``.
@@ -213,6 +217,31 @@ class ExecutionReport:
     contact: tuple[float, float, float] | None = None
     """Where the body first touched the true scene, in the frame of the published poses
     (``map`` as the platform believes it); None without a collision."""
+
+
+@dataclass
+class TraverseReport:
+    """What the planner's traversability layer refused in one step, and what it chose."""
+
+    step: int
+    refused: dict[str, int] = field(default_factory=dict)
+    """Motions refused by hazard (``unknown``, ``wheel-drop``, ``tilt``, ``belly``)."""
+    reason: str = ""
+    """The planner's choice: best-feasible, rotate, escape, backout or stay."""
+    known_cells: int = 0
+
+
+@dataclass
+class TraversabilityGrid:
+    """The traversability map around the rover as ``nav_msgs/OccupancyGrid`` carries it: -1
+    unknown, 0 known and clear, 100 an obstacle to the body (row-major from the corner at
+    ``origin_xy``, rows along y)."""
+
+    step: int
+    cells: np.ndarray
+    """(H, W) int8."""
+    resolution_m: float
+    origin_xy: tuple[float, float]
 
 
 @dataclass

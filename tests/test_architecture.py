@@ -25,15 +25,16 @@ def test_the_graph_is_consistent_and_everything_derives_from_it():
     graph.check_graph()
     assert graph.LAUNCHED == ("sim", "mapper", "gate", "planner")
     assert graph.stage_module() == {"execute": "sim", "render": "sim", "integrate": "mapper",
-                                    "gate": "gate", "plan": "planner"}
+                                    "gate": "gate", "traverse": "planner", "plan": "planner"}
     # The journal keeps every step of what modules replay, the last steps of the rest.
     assert {"status", "path", "depth", "camera_info", "pose", "pose_cov", "base_pose",
-            "execution"} == KEEP_ALL
+            "execution", "hazcam_front", "hazcam_rear"} == KEEP_ALL
     assert {"surface", "predicted", "planner_map"} == KEEP_LAST
     assert {m.name: m.progress for m in graph.MODULES.values() if m.launched} == {
         "sim": "base_pose", "mapper": "predicted", "gate": "planner_map", "planner": "path"}
     # What a ground command restarts is what is built from the setting it changes.
     assert graph.readers("condition") == ("mapper", "gate")
+    assert graph.readers("hazcam") == ("sim", "mapper", "planner")
     assert graph.readers("gate") == ("gate",) and graph.readers("planner") == ("planner",)
     # Every topic a module reads has exactly one producer in the graph.
     for m in graph.MODULES.values():
@@ -123,7 +124,8 @@ def test_in_process_transport_routes_by_the_graph():
         assert t.receive("base", 0).position.shape == (3,)
         with pytest.raises(Exception, match="no path of step 0"):
             t.receive("path", 0) and t.receive("path", 0)  # the first takes it; none is left
-        assert {x.module for x in t.timings()} == {"render", "integrate", "gate", "plan"}
+        assert {x.module for x in t.timings()} == {"render", "integrate", "gate", "traverse",
+                                               "plan"}
     finally:
         t.finish(MissionStatus(0, 2, "done", "obs", 0.0, 0), failed=False)
 

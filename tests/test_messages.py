@@ -24,6 +24,8 @@ from rovergate.types import (
     Pose,
     PoseWithCovariance,
     StepTiming,
+    TraversabilityGrid,
+    TraverseReport,
     TelemetryFrame,
 )
 
@@ -53,6 +55,14 @@ VALUES = {
     "path": PlanPath(7, [pose, Pose.from_xyz_yaw(2.0, 1.0, 0.0, -1.0)]),
     "rejected": PlanPath(7, []),
     "execution": ExecutionReport(7, True, 3, -0.01, 2.5, 0.8, contact=(1.0, -2.0, 0.5)),
+    "hazcam_front": (7, depth),
+    "hazcam_rear": (7, np.zeros((0, 0), dtype=np.float32)),  # a platform without them
+    "hazcam_front_info": (7, CameraIntrinsics.from_fov(16, 12, 90.0)),
+    "hazcam_rear_info": (7, CameraIntrinsics.from_fov(16, 12, 90.0)),
+    "traverse": TraverseReport(7, {"unknown": 3, "wheel-drop": 1, "tilt": 0, "belly": 2},
+                               "backout", 1234),
+    "traversability": TraversabilityGrid(7, np.array([[-1, 0], [100, 0], [0, -1]], np.int8),
+                                         0.125, (-3.5, 2.25)),
     "status": MissionStatus(7, 100, "running", "obs", 0.25, 1),
     "timing": StepTiming(7, "plan", 0.125, 2),
     "truth_surface": (0, _cloud(XYZ_DTYPE)),

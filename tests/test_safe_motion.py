@@ -105,6 +105,23 @@ def test_a_flyer_the_map_now_blocks_leaves_only_by_a_checked_escape():
     assert path is not None and all(model.is_free(s) for s in path)
 
 
+def test_a_flyer_escape_may_pass_nearer_than_a_check_before_never_nearer_than_its_start():
+    # A point 0.35 m to its left blocks it; a second, ahead and to the right, lies along the
+    # way out: the distance to the map grows, shrinks while the way passes the second point
+    # (never under where it started), then grows again. The rule is the start's distance,
+    # not the last check's (issue 14's note): the escape gets out.
+    cfg = mission("flyer")
+    pts = np.vstack([ground(), [[0.0, 0.35, 1.6], [0.4, -0.25, 1.6]]]).astype(np.float32)
+    model = FlyerModel(cfg, pts, Pose.from_xyz_yaw_pitch(0.0, 0.0, 1.6, 0.0, 0.0))
+    start = model.sphere.distance(np.array([0.0, 0.0, 1.6]))
+    end = model.escape()
+    assert end is not None and model.is_free(end)
+    assert end[:3] == pytest.approx((0.0, -0.55, 1.6))
+    way = [model.sphere.distance(np.array([0.0, -d, 1.6])) for d in np.arange(0.05, 0.56, 0.05)]
+    assert min(way) >= start - 1e-9
+    assert any(b < a for a, b in zip(way, way[1:], strict=False))  # it did shrink on the way
+
+
 def test_a_flyer_above_its_altitude_band_descends_back_into_it():
     # The flyer got to 7 m over a ground the map then placed lower (a prediction filled the
     # floor below it): nothing is near it, but it is above the band (6 m over the ground).

@@ -1,0 +1,173 @@
+"""The rover's traversability layer on built cases, rendered by pybullet: what its hazard
+cameras see, and the motions it refuses (planner/traversability.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from planner.platforms import RoverModel
+from planner.planner import GreedyPlanner
+from planner.traversability import BELLY, UNKNOWN, WHEEL_DROP, TerrainMap, densify
+from rover_sim.scene import Scene
+from rover_sim.sim import RoverSim
+from rovergate.config import MissionConfig
+from rovergate.types import PLANNER_DTYPE, PlannerMap, Pose, Source, make_cloud
+
+BOUNDS = (-8.0, -8.0, -4.0, 8.0, 8.0, 4.0)
+
+
+def built(name: str, height=lambda x, y: 0.0 * x, objects=()) -> tuple[MissionConfig, RoverSim]:
+    """A flat (or shaped) built world with the rover at the origin facing +x."""
+    xs = np.arange(-10.0, 10.01, 0.1)
+    X, Y = np.meshgrid(xs, xs)
+    scene = Scene(name, xs, xs, height(X, Y), list(objects), BOUNDS, {"a": (0.0, 0.0, 0.0)})
+    cfg = MissionConfig()
+    cfg.scene.name = name
+    cfg.scene.bounds_m = BOUNDS
+    cfg.scene.d_scene_m = scene.d_scene_m
+    return cfg, RoverSim(cfg, scene)
+
+
+def sensed(cfg: MissionConfig, sim: RoverSim, poses=((0.0, 0.0, 0.0),)) -> TerrainMap:
+    """The layer after the rover stood and looked at each of ``poses`` (its trail)."""
+    terrain = TerrainMap(cfg)
+    for step, pose in enumerate(poses):
+        sim.state = pose
+        frame = sim.render(step)
+        terrain.add_step(step, frame.T_map_base.matrix(),
+                         (frame.T_map_camera.matrix(), frame.intrinsics, frame.depth_m),
+                         frame.hazcams)
+    x, y, _ = poses[-1]
+    terrain.prepare(x, y)
+    return terrain
+
+
+def straight(x1: float, y1: float = 0.0, start=(0.0, 0.0, 0.0)) -> list[tuple]:
+    return [start, (x1, y1, start[2])]
+
+
+def test_the_hazard_cameras_see_the_ground_the_mast_cannot():
+    cfg, sim = built("flat")
+    try:
+        frame = sim.render(0)
+        assert set(frame.hazcams) == {"front", "rear"}
+        for depth in frame.hazcams.values():
+            assert depth.shape == (cfg.hazcam.height_px, cfg.hazcam.width_px)
+            # The lowest rows look straight down from 0.8 m at 45 degrees off the axis.
+            assert np.nanmin(depth) == pytest.approx(0.8 * np.cos(np.radians(45)), abs=0.02)
+        terrain = sensed(cfg, sim)
+        # The ground from the body's edge to 2 m ahead and behind: known (the mast's view of
+        # the ground begins about 2 m out).
+        for x in (0.7, 1.2, 1.8, -0.7, -1.8):
+            i, j = terrain._cells(np.array([[x, 0.0]]))
+            assert np.isfinite(terrain.top[i[0], j[0]]), x
+    finally:
+        sim.close()
+
+
+def test_a_drop_off_the_mast_camera_cannot_see_is_refused():
+    # A 3 m cliff 2 m ahead: beyond its edge, the ground is hidden from the mast and out of
+    # the hazard camera's range. The sim would stop the rover at the edge; the layer must
+    # not send it there.
+    cfg, sim = built("cliff", height=lambda x, y: np.where(x > 2.0, -3.0, 0.0))
+    try:
+        terrain = sensed(cfg, sim)
+        assert terrain.admit(straight(0.8)) is None  # seen ground ahead: drivable
+        assert terrain.admit(straight(2.6)) == UNKNOWN
+        assert terrain.admit(straight(4.0)) == UNKNOWN
+        assert not terrain.free(2.6, 0.0, 0.0)
+        assert terrain.refused[UNKNOWN] == 2
+        # The rover at the origin, the edge in its hazard camera: the planner's model keeps it
+        # on this side.
+        model = RoverModel(cfg, np.zeros((0, 3), np.float32), Pose.from_xyz_yaw(0, 0, 0, 0),
+                           terrain=terrain)
+        assert model.is_free((1.0, 0.0, 0.0)) and not model.is_free((2.7, 0.0, 0.0))
+    finally:
+        sim.close()
+
+
+def test_a_predicted_only_floor_is_not_drivable():
+    cfg, sim = built("flat")
+    try:
+        terrain = sensed(cfg, sim)
+        # A predicted floor over ground no camera has seen yet (6 m to the left), and the
+        # observed floor around the rover: the map alone would drive onto the prediction.
+        xs, ys = np.meshgrid(np.arange(-1.0, 1.0, 0.15), np.arange(4.5, 7.5, 0.15))
+        predicted = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)].astype(np.float32)
+        xs, ys = np.meshgrid(np.arange(-1.0, 3.0, 0.15), np.arange(-1.0, 1.0, 0.15))
+        observed = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)].astype(np.float32)
+        points = np.vstack([observed, predicted])
+        source = np.r_[np.zeros(len(observed), bool), np.ones(len(predicted), bool)]
+        here = Pose.from_xyz_yaw(0, 0, 0, 0)
+        with_layer = RoverModel(cfg, points, here, predicted=source, terrain=terrain)
+        map_only = RoverModel(cfg, points, here, predicted=source)
+        on_prediction = (0.0, 6.0, np.pi / 2)
+        assert map_only.is_free(on_prediction)
+        assert not with_layer.is_free(on_prediction)
+        assert terrain.assess(*on_prediction) == UNKNOWN
+        assert with_layer.is_free((1.2, 0.0, 0.0))  # the observed floor ahead is drivable
+    finally:
+        sim.close()
+
+
+def test_a_rock_under_the_belly_is_refused_and_a_pebble_is_not():
+    rock = trimesh.creation.box(extents=[0.3, 0.3, 0.3])
+    rock.apply_translation([1.6, 0.0, 0.15])
+    pebble = trimesh.creation.box(extents=[0.2, 0.2, 0.1])
+    pebble.apply_translation([-1.6, 0.0, 0.05])
+    cfg, sim = built("rock", objects=[rock, pebble])
+    try:
+        # Seen from both sides (from one, its far side is in its own shadow: unknown).
+        terrain = sensed(cfg, sim, [(3.6, 0.0, np.pi), (-3.6, 0.0, 0.0), (0.0, 0.0, 0.0)])
+        # The rock, 0.3 m tall (the clearance is 0.25 m), under the body's centre: refused.
+        over_rock = (1.6, 0.0, 0.0)
+        assert terrain.assess(*over_rock) == BELLY
+        assert terrain.admit(straight(1.6)) in (BELLY, WHEEL_DROP)
+        # ... and the true scene agrees: driving there hits the rock.
+        assert sim.body.drive((0.0, 0.0, 0.0), [over_rock]).collided
+        # A 0.1 m pebble under the belly, between the wheels (behind the rover): passes.
+        assert terrain.assess(-1.6, 0.0, 0.0) is None
+        assert not sim.body.drive((0.0, 0.0, 0.0), [(-1.6, 0.0, 0.0)]).collided
+    finally:
+        sim.close()
+
+
+def test_a_rover_walled_in_by_predictions_backs_out_the_way_it_came():
+    cfg, sim = built("flat")
+    try:
+        trail = [(-3.0, 0.0, 0.0), (-2.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 0.0)]
+        terrain = sensed(cfg, sim, trail)
+        # Observed floor all round; a predicted wall in the body's height band on a ring 0.72 m
+        # from the rover: no candidate and no turn is free on the map.
+        xs, ys = np.meshgrid(np.arange(-6.0, 6.0, 0.15), np.arange(-6.0, 6.0, 0.15))
+        floor = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)]
+        a = np.linspace(-np.pi, np.pi, 120, endpoint=False)
+        ring = np.concatenate([np.c_[0.72 * np.cos(a), 0.72 * np.sin(a), np.full(a.size, z)]
+                               for z in (0.4, 0.6, 0.8)])
+        cloud = make_cloud(np.vstack([floor, ring]).astype(np.float32), PLANNER_DTYPE,
+                           source=np.r_[np.full(len(floor), Source.OBSERVED),
+                                        np.full(len(ring), Source.PREDICTED)], views=5)
+        result = GreedyPlanner(cfg).plan(5, PlannerMap(5, cloud), Pose.from_xyz_yaw(0, 0, 0, 0),
+                                         terrain=terrain)
+        assert result.reason == "backout"
+        end = result.path.poses[-1].position
+        # Back along the trail (heading kept: it reverses), as far as the motion budget.
+        assert end[0] == pytest.approx(-cfg.planner.max_step_m, abs=0.05)
+        assert abs(end[1]) < 1e-6 and abs(result.path.poses[-1].yaw) < 1e-6
+        # Without a trail (a rover that has not moved) there is nothing to back along.
+        fresh = sensed(cfg, sim)
+        stay = GreedyPlanner(cfg).plan(0, PlannerMap(0, cloud), Pose.from_xyz_yaw(0, 0, 0, 0),
+                                       terrain=fresh)
+        assert stay.reason == "stay"
+    finally:
+        sim.close()
+
+
+def test_densify_keeps_spacing_and_turn_limits():
+    poses = densify([(0.0, 0.0, 0.0), (1.0, 0.0, np.pi / 2)], 0.1, np.radians(5))
+    xy = np.array([p[:2] for p in poses])
+    assert np.linalg.norm(np.diff(xy, axis=0), axis=1).max() <= 0.1 + 1e-9
+    assert np.abs(np.diff([p[2] for p in poses])).max() <= np.radians(5) + 1e-9
+    assert poses[-1] == pytest.approx((1.0, 0.0, np.pi / 2))
