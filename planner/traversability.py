@@ -18,16 +18,22 @@ for the rover, apart from the planner-facing occupancy the study is about:
   calls a step: the body is covered by three discs along its axis, and a pose is free when
   no disc's centre lies within its radius of an unknown cell (the body itself) or of an
   obstacle cell (the body widened by the side margin; a cell standing higher over the local
-  ground plane, fitted to the cells within 0.3 m, than the belly allows: a rock, not a slope). Both masks are dilated once a step, over a
-  window around the rover that holds every state the planner can reach this step.
+  ground plane, fitted to the cells within 0.3 m, than the belly allows: a rock, not a
+  slope). Both masks are dilated once a step, over a window around the rover that holds
+  every state the planner can reach this step. The same local plane is the measured ground
+  the planner-facing map's obstacles are measured from where it is known (:meth:`ground_at`).
 - **ACE** (:meth:`TerrainMap.assess`) on every motion the rover is sent along, every
   ``ACE_SPACING_M`` and 5 degrees of it: under the body nothing unknown; the four wheels'
-  patches each no rougher than ``wheel_drop_m`` about the wheels' plane; the plane through the wheels no steeper
-  than ``max_roll_deg`` / ``max_pitch_deg``, and no wheel off it by more than
+  patches each no rougher than ``wheel_drop_m`` about the wheels' plane; the plane through
+  the wheels no steeper than ``max_roll_deg`` / ``max_pitch_deg``, and no wheel off it by
+  more than
   ``wheel_drop_m``; nothing under the body (widened by the side margin) higher over that
   plane than the ground clearance less ``belly_margin_m`` (0.18 m), nor a hole under it
   deeper than ``wheel_drop_m``. A refused motion is counted by the first hazard found
-  (:data:`HAZARDS`).
+  (:data:`HAZARDS`), as is a candidate goal the layer refuses (:meth:`why_not`).
+- **A way back** (:meth:`TerrainMap.backout`): the poses of the last steps, most recent first,
+  checked by ACE alone: the rover's body stood at each of them, so no prediction there can
+  be real.
 
 Everything is in the frame the rover believes it is in (with drift, the drifted one), as an
 onboard navigation system would have it.

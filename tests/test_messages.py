@@ -24,9 +24,9 @@ from rovergate.types import (
     Pose,
     PoseWithCovariance,
     StepTiming,
+    TelemetryFrame,
     TraversabilityGrid,
     TraverseReport,
-    TelemetryFrame,
 )
 
 rng = np.random.default_rng(0)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from planner.platforms import RoverModel
 from planner.planner import GreedyPlanner
+from planner.platforms import RoverModel
 from planner.traversability import BELLY, UNKNOWN, WHEEL_DROP, TerrainMap, densify
 from rover_sim.scene import Scene
 from rover_sim.sim import RoverSim
