@@ -44,6 +44,9 @@ ESCAPE_M = 0.6
 ESCAPE_STEP_M = 0.05
 #: The rover's escape turns in place by these angles (degrees) before it drives, first to last.
 ESCAPE_TURNS_DEG = (0, 20, -20, 45, -45, 90, -90)
+#: The rover with a traversability layer draws this many times the candidates it needs and
+#: keeps those on ground it can drive (RoverModel.sample).
+SAMPLE_OVERDRAW = 4
 #: How far inside the altitude band a flyer that left it returns (the band's edges move with
 #: the ground the map estimates, by a few centimetres a step).
 BAND_INSET_M = 0.1
@@ -238,15 +241,25 @@ class RoverModel(MotionModel):
 
     def sample(self, rng: np.random.Generator, n: int, around: State | None = None
                ) -> list[State]:
+        """With a traversability layer, ``SAMPLE_OVERDRAW`` times ``n`` states are drawn and
+        the first ``n`` the layer's search-time check allows are kept (then the others, in
+        the order drawn, to make up ``n``): most of a disc around the rover is ground it has
+        not seen, and a candidate there can never be driven to."""
         x0, y0, _ = self.current if around is None else around
         pc = self.cfg.planner
-        r = pc.max_step_m * np.sqrt(rng.uniform(0, 1, n))
-        th = rng.uniform(-np.pi, np.pi, n)
-        yaw = rng.uniform(-np.pi, np.pi, n)
+        m = n * (SAMPLE_OVERDRAW if self.terrain is not None else 1)
+        r = pc.max_step_m * np.sqrt(rng.uniform(0, 1, m))
+        th = rng.uniform(-np.pi, np.pi, m)
+        yaw = rng.uniform(-np.pi, np.pi, m)
         box = self.inner_box()
         cx = np.clip(x0 + r * np.cos(th), box[0], box[2])
         cy = np.clip(y0 + r * np.sin(th), box[1], box[3])
-        return list(zip(cx.tolist(), cy.tolist(), yaw.tolist(), strict=True))
+        states = list(zip(cx.tolist(), cy.tolist(), yaw.tolist(), strict=True))
+        if self.terrain is None:
+            return states
+        ok = [self.terrain.free(*s) for s in states]
+        return ([s for s, f in zip(states, ok, strict=True) if f]
+                + [s for s, f in zip(states, ok, strict=True) if not f])[:n]
 
     def base_pose(self, s: State) -> Pose:
         return Pose.from_xyz_yaw(s[0], s[1], self.ground.ground_z(s[0], s[1]), s[2])

@@ -57,6 +57,9 @@ HAZARDS = (UNKNOWN, WHEEL_DROP, TILT, BELLY)
 #: Spacing of ACE's poses along a motion (and at most 5 degrees of turn between two).
 ACE_SPACING_M = 0.1
 ACE_TURN_RAD = math.radians(5.0)
+#: A pose within 0.1 m of one of the trail's last this many is a return to it: the trail is
+#: cut back to it (TerrainMap.add_base).
+BACK_STEPS_KEPT = 12
 #: A cell last updated this many steps before a frame that sees it again starts afresh.
 STALE_STEPS = 5
 #: Half-side of the window the search-time masks cover around the rover (metres): a step's
@@ -83,29 +86,22 @@ def _window_reduce(a: np.ndarray, r: int, op) -> np.ndarray:
     return out
 
 
-def _box_sum(a: np.ndarray, r: int) -> np.ndarray:
-    """The sum over each (2r+1)^2 box (zeros beyond the edges), by summed-area table."""
-    h, w = a.shape
-    S = np.zeros((h + 2 * r + 1, w + 2 * r + 1))
-    S[1:, 1:] = np.pad(a, r).cumsum(0).cumsum(1)
-    n = 2 * r + 1
-    return S[n:, n:] - S[:h, n:] - S[n:, :w] + S[:h, :w]
-
-
 def plane_residual(known: np.ndarray, elev: np.ndarray, r: int, keep: np.ndarray | None = None
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Each cell's height over the least-squares plane of the known cells (those of ``keep``,
     if given) in the (2r+1)^2 window around it: (residual, fitted, plane) with fitted False
     where fewer than 6 cells were known (residual 0 there), plane the plane's height at the
     cell."""
+    from scipy.ndimage import uniform_filter  # (the rover's planner only: 0.25 s to import)
     K = (known if keep is None else known & keep).astype(np.float64)
     h, w = K.shape
     Y, X = np.mgrid[0:h, 0:w].astype(np.float64)
     Z = np.where(known, elev, 0.0) * K
-    n = _box_sum(K, r)
-    sx, sy, sz = _box_sum(K * X, r), _box_sum(K * Y, r), _box_sum(Z, r)
-    sxx, sxy, syy = _box_sum(K * X * X, r), _box_sum(K * X * Y, r), _box_sum(K * Y * Y, r)
-    sxz, syz = _box_sum(Z * X, r), _box_sum(Z * Y, r)
+    # The window sums of the nine moments at once (zeros beyond the edges).
+    moments = np.stack([K, K * X, K * Y, Z, K * X * X, K * X * Y, K * Y * Y, Z * X, Z * Y])
+    size = 2 * r + 1
+    sums = uniform_filter(moments, size=(1, size, size), mode="constant") * (size * size)
+    n, sx, sy, sz, sxx, sxy, syy, sxz, syz = sums
     fitted = n >= 6
     nn = np.where(fitted, n, 1.0)
     # Centred on each cell: the plane z = a + b (x - X) + c (y - Y), a its height there.
@@ -124,20 +120,10 @@ def plane_residual(known: np.ndarray, elev: np.ndarray, r: int, keep: np.ndarray
 
 def _dilate_disc(mask: np.ndarray, radius_cells: float) -> np.ndarray:
     """Cells within ``radius_cells`` (centre to centre) of a True cell of ``mask``."""
-    r = int(math.floor(radius_cells))
-    h, w = mask.shape
-    p = np.pad(mask, r)
-    out = np.zeros_like(mask)
-    for di in range(-r, r + 1):
-        span = int(math.floor(math.sqrt(max(radius_cells ** 2 - di ** 2, 0.0))))
-        # one row of the disc: the OR of a run of 2*span+1 cells, as a prefix-count difference
-        row = p[r + di:r + di + h]
-        c = np.cumsum(row, axis=1, dtype=np.int32)
-        c = np.pad(c, ((0, 0), (1, 0)))
-        lo = np.arange(w) + r - span
-        hi = np.arange(w) + r + span + 1
-        out |= (c[:, hi] - c[:, lo]) > 0
-    return out
+    from scipy.ndimage import distance_transform_edt
+    if not mask.any():
+        return np.zeros_like(mask)
+    return distance_transform_edt(~mask) <= radius_cells
 
 
 class TerrainMap:
@@ -155,7 +141,6 @@ class TerrainMap:
         self.lo = np.full(self.shape, np.inf)
         self.top = np.full(self.shape, -np.inf)
         self.updated = np.full(self.shape, -(10 ** 9), dtype=np.int64)
-        self.driven = np.zeros(self.shape, dtype=bool)
         self.band_m = r.body_top_m + t.side_margin_m
         self.belly_m = r.clearance_m - t.belly_margin_m
         self.trail: list[tuple[float, float, float]] = []
@@ -223,62 +208,71 @@ class TerrainMap:
         are known; where no return landed, their ground is the plane the base stands on."""
         R, p = T_map_base[:3, :3], T_map_base[:3, 3]
         yaw = math.atan2(R[1, 0], R[0, 0])
+        # Back where it stood a few steps ago (a back-out): the poses since are a dead end
+        # it left, not a way back.
+        for k in range(len(self.trail) - 1, max(len(self.trail) - 1 - BACK_STEPS_KEPT, -1), -1):
+            q = self.trail[k]
+            if math.hypot(q[0] - p[0], q[1] - p[1]) < 0.1:
+                del self.trail[k:]
+                break
         self.trail.append((float(p[0]), float(p[1]), yaw))
         xy_body = self._samples
         pts = np.c_[xy_body, np.zeros(len(xy_body))] @ R.T + p
         i, j = self._cells(pts[:, :2])
         ok = (i >= 0) & (i < self.shape[0]) & (j >= 0) & (j < self.shape[1])
         i, j, z = i[ok], j[ok], pts[ok, 2]
-        self.driven[i, j] = True
         blank = ~np.isfinite(self.lo[i, j])
         self.lo[i[blank], j[blank]] = z[blank]
         self.top[i[blank], j[blank]] = z[blank]
 
-    def _camera_rays(self, k: CameraIntrinsics) -> np.ndarray:
+    def _camera_rays(self, k: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """Each pixel's ray (x/z, y/z, 1) in the optical frame, and its length (range over
+        z-depth), computed once per camera."""
         key = (k.width, k.height, k.fx, k.fy, k.cx, k.cy)
         if key not in self._rays:
             u, v = np.meshgrid(np.arange(k.width, dtype=np.float64),
                                np.arange(k.height, dtype=np.float64))
-            self._rays[key] = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy,
-                                        np.ones_like(u)], axis=-1)
+            rays = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u)], axis=-1)
+            self._rays[key] = (rays, np.sqrt((rays ** 2).sum(-1)))
         return self._rays[key]
 
     def add_frame(self, step: int, T_map_camera: np.ndarray, k: CameraIntrinsics,
                   depth: np.ndarray, max_range_m: float) -> None:
         """Back-project one depth image's valid returns (within ``max_range_m``) into the
         height map."""
-        rays = self._camera_rays(k)
+        rays, length = self._camera_rays(k)
         if rays.shape[:2] != depth.shape:
             return  # (an image that does not match its intrinsics carries nothing usable)
-        z = depth.astype(np.float64)
-        valid = np.isfinite(z) & (z > 0) & (z * np.sqrt((rays ** 2).sum(-1)) <= max_range_m)
+        with np.errstate(invalid="ignore"):
+            valid = (depth > 0) & (depth * length <= max_range_m)  # NaN and +Inf: False
         if not valid.any():
             return
-        P = (rays[valid] * z[valid, None]) @ T_map_camera[:3, :3].T + T_map_camera[:3, 3]
+        z = depth[valid].astype(np.float64)
+        P = (rays[valid] * z[:, None]) @ T_map_camera[:3, :3].T + T_map_camera[:3, 3]
         self.add_points(step, P)
 
     def add_points(self, step: int, P: np.ndarray) -> None:
-        """Take in (N, 3) measured points (map frame) seen at ``step``."""
+        """Take in (N, 3) measured points (map frame) seen at ``step``. Per point, with the
+        cells repeated as often as points fall in them: every update below writes the same
+        value for each repeat, so the order does not matter."""
         i, j = self._cells(P[:, :2])
         ok = (i >= 0) & (i < self.shape[0]) & (j >= 0) & (j < self.shape[1])
         flat = (i * self.shape[1] + j)[ok]
         z = P[ok, 2]
         lo, top, upd = self.lo.reshape(-1), self.top.reshape(-1), self.updated.reshape(-1)
-        cells = np.unique(flat)
-        stale = cells[upd[cells] <= step - STALE_STEPS]
+        stale = flat[upd[flat] <= step - STALE_STEPS]
         lo[stale], top[stale] = np.inf, -np.inf
-        upd[cells] = step
-        frame_lo = np.full(lo.shape, np.inf)
-        np.minimum.at(frame_lo, flat, z)
-        new_lo = np.minimum(lo[cells], frame_lo[cells])
-        old_lo, old_top = lo[cells], top[cells]
+        upd[flat] = step
+        old_lo, old_top = lo[flat], top[flat]
+        np.minimum.at(lo, flat, z)
+        new_lo = lo[flat]
         # What was kept over the old lowest return is measured again from the new one: all of
         # it overhead now (forgotten), or partly (capped at the band: an obstacle at most).
         overhead = old_lo > new_lo + self.band_m
+        top[flat[overhead]] = -np.inf
         capped = ~overhead & (old_top > new_lo + self.band_m)
-        old_top = np.where(overhead, -np.inf, np.where(capped, new_lo + self.band_m, old_top))
-        lo[cells], top[cells] = new_lo, old_top
-        keep = z <= lo[flat] + self.band_m
+        top[flat[capped]] = new_lo[capped] + self.band_m
+        keep = z <= new_lo + self.band_m
         np.maximum.at(top, flat[keep], z[keep])
 
     def _cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -315,12 +309,13 @@ class TerrainMap:
         i1, j1 = max(min(ci + w + 1, self.shape[0]), i0 + 1), max(min(cj + w + 1, self.shape[1]),
                                                                    j0 + 1)
         known, elev = self.elevation(i0, i1, j0, j1)
-        # Over the local ground plane (refitted without what stands out of the first fit, so
-        # that a rock does not lift the plane it is measured from): slopes are not obstacles.
-        first, _, _ = plane_residual(known, elev, GROUND_WINDOW)
-        res, fitted, plane = plane_residual(known, elev, GROUND_WINDOW,
-                                            keep=first <= self.belly_m / 2)
+        # Over the local ground plane, fitted without the cells that stand out of their
+        # 3 x 3 neighbourhood by half the belly's limit (a rock's edge; a 25-degree slope
+        # rises 0.07 m over a cell's diagonal), so that a rock does not lift the plane it is
+        # measured from: slopes are not obstacles, rocks are.
         low = _window_reduce(np.where(known, elev, np.inf), 1, np.minimum)
+        res, fitted, plane = plane_residual(known, elev, GROUND_WINDOW,
+                                            keep=elev - low <= self.belly_m / 2)
         obstacle = known & np.where(fitted, res > self.belly_m, elev - low > self.belly_m)
         self._unknown_near = _dilate_disc(~known, self._r_unknown)
         blocked = self._unknown_near | _dilate_disc(obstacle, self._r_obstacle)

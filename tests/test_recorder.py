@@ -84,6 +84,27 @@ def test_a_process_set_mission_records_every_topic_into_an_mcap_bag(tmp_path: Pa
     assert counts == metrics["recording"]["messages"]
     assert counts["status"] == 12  # ticks 0..10 and the final `done`
     assert metrics["recording"]["writer"] == "thread"  # the mission manager's own thread
+    # The rover's hazard cameras and its traversability map, decoded independently.
+    for end in ("front", "rear"):
+        images = got[names[f"hazcam_{end}"]]
+        assert [m.header.stamp.sec for m in images] == list(range(11))
+        img = images[0]
+        assert img.encoding == "32FC1" and img.header.frame_id == f"hazcam_{end}_optical"
+        assert (img.width, img.height) == (128, 96) and len(img.data) == 4 * 128 * 96
+        depth = np.frombuffer(bytes(img.data), "<f4")
+        assert np.isfinite(depth).mean() > 0.5  # the ground ahead (behind) of the rover
+        info = got[names[f"hazcam_{end}_info"]][0]
+        assert info.header.frame_id == f"hazcam_{end}_optical" and info.k[0] > 0
+    grids = got[names["traversability"]]
+    assert [m.header.stamp.sec for m in grids] == list(range(10))
+    cells = np.frombuffer(bytes(grids[-1].data), np.int8)
+    assert len(cells) == grids[-1].info.width * grids[-1].info.height
+    assert grids[-1].info.resolution == pytest.approx(0.1)
+    assert set(np.unique(cells)) <= {-1, 0, 100} and (cells == 0).sum() > 1000
+    reports = got[names["traverse"]]
+    assert [m.step for m in reports] == list(range(10))
+    assert {m.reason for m in reports} <= {"best-feasible", "rotate", "escape", "backout",
+                                            "stay"}
 
 
 @pytest.fixture(scope="module")
