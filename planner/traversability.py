@@ -60,6 +60,8 @@ ACE_TURN_RAD = math.radians(5.0)
 #: A pose within 0.1 m of one of the trail's last this many is a return to it: the trail is
 #: cut back to it (TerrainMap.add_base).
 BACK_STEPS_KEPT = 12
+#: Within this distance of a start that ACE refuses, a motion may show the start's hazard.
+LEAVE_M = 0.5
 #: A cell last updated this many steps before a frame that sees it again starts afresh.
 STALE_STEPS = 5
 #: Half-side of the window the search-time masks cover around the rover (metres): a step's
@@ -281,13 +283,15 @@ class TerrainMap:
 
     # --- the layers of a step -----------------------------------------------------------
 
-    def elevation(self, i0: int, i1: int, j0: int, j1: int) -> tuple[np.ndarray, np.ndarray]:
-        """(known, elevation) of the cells [i0:i1, j0:j1]: elevation NaN where unknown. An
-        unknown cell with at least 6 known neighbours takes their highest (a hole between
-        returns, not a gap in the terrain)."""
-        top = self.top[i0:i1, j0:j1]
+    def elevation(self, i0: int, i1: int, j0: int, j1: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(known, top, ground) of the cells [i0:i1, j0:j1]: each cell's highest return within
+        the body's reach (what stands there) and its lowest (the ground a wheel could drop
+        to), NaN where unknown. An unknown cell with at least 6 known neighbours takes their
+        highest top and lowest ground (a hole between returns, not a gap in the terrain)."""
+        top, lo = self.top[i0:i1, j0:j1], self.lo[i0:i1, j0:j1]
         known = np.isfinite(top)
-        elev = np.where(known, top, np.nan)
+        elev, ground = np.where(known, top, np.nan), np.where(known, lo, np.nan)
         p = np.pad(known, 1).astype(np.int8)
         h, w = known.shape
         n = sum(p[1 + di:1 + di + h, 1 + dj:1 + dj + w]
@@ -295,9 +299,10 @@ class TerrainMap:
         hole = ~known & (n >= 6)
         if hole.any():
             high = _window_reduce(np.where(known, top, -np.inf), 1, np.maximum)
-            elev = np.where(hole, high, elev)
+            low = _window_reduce(np.where(known, lo, np.inf), 1, np.minimum)
+            elev, ground = np.where(hole, high, elev), np.where(hole, low, ground)
             known = known | hole
-        return known, elev
+        return known, elev, ground
 
     def prepare(self, x: float, y: float) -> None:
         """Build this step's search-time masks around (x, y) (once a step: the planner calls
@@ -308,19 +313,25 @@ class TerrainMap:
         i0, j0 = min(max(ci - w, 0), self.shape[0] - 1), min(max(cj - w, 0), self.shape[1] - 1)
         i1, j1 = max(min(ci + w + 1, self.shape[0]), i0 + 1), max(min(cj + w + 1, self.shape[1]),
                                                                    j0 + 1)
-        known, elev = self.elevation(i0, i1, j0, j1)
+        known, elev, ground = self.elevation(i0, i1, j0, j1)
         # Over the local ground plane, fitted without the cells that stand out of their
         # 3 x 3 neighbourhood by half the belly's limit (a rock's edge; a 25-degree slope
         # rises 0.07 m over a cell's diagonal), so that a rock does not lift the plane it is
-        # measured from: slopes are not obstacles, rocks are.
+        # measured from: slopes are not obstacles, rocks are. And an edge: where the lowest
+        # returns of a 3 x 3 neighbourhood span more than the belly's limit (a slab's or a
+        # ledge's side, which the highest returns smear over a cell).
         low = _window_reduce(np.where(known, elev, np.inf), 1, np.minimum)
         res, fitted, plane = plane_residual(known, elev, GROUND_WINDOW,
                                             keep=elev - low <= self.belly_m / 2)
-        obstacle = known & np.where(fitted, res > self.belly_m, elev - low > self.belly_m)
+        g = np.where(known, ground, np.nan)
+        span = (_window_reduce(np.where(known, ground, -np.inf), 1, np.maximum)
+                - _window_reduce(np.where(known, ground, np.inf), 1, np.minimum))
+        obstacle = known & (np.where(fitted, res > self.belly_m, elev - low > self.belly_m)
+                            | (np.isfinite(g) & (span > self.belly_m)))
         self._unknown_near = _dilate_disc(~known, self._r_unknown)
         blocked = self._unknown_near | _dilate_disc(obstacle, self._r_obstacle)
         self._win = (i0, j0, blocked)
-        self._known, self._elev, self._obstacle = known, elev, obstacle
+        self._known, self._elev, self._low, self._obstacle = known, elev, ground, obstacle
         self._ground = np.where(fitted, plane, np.nan)
 
     def ground_at(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -369,31 +380,33 @@ class TerrainMap:
         if self._win is None:
             self.prepare(*(self.trail[-1][:2] if self.trail else (x, y)))
         i0, j0, _ = self._win
-        known, elev = self._known, self._elev
+        known, elev, low = self._known, self._elev, self._low
         c, s = math.cos(yaw), math.sin(yaw)
         R = np.array([[c, -s], [s, c]])
 
-        def look(body_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def look(body_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             xy = body_xy @ R.T + (x, y)
             i, j = self._cells(xy)
             i, j = i - i0, j - j0
             ok = (i >= 0) & (i < known.shape[0]) & (j >= 0) & (j < known.shape[1])
             i, j = np.where(ok, i, 0), np.where(ok, j, 0)
-            return ok & known[i, j], np.where(ok, elev[i, j], np.nan)
+            return (ok & known[i, j], np.where(ok, elev[i, j], np.nan),
+                    np.where(ok, low[i, j], np.nan))
 
-        k_s, z_s = look(self._samples)
+        k_s, z_s, g_s = look(self._samples)
         if not k_s[self._in_body].all():
             return UNKNOWN
-        k_w, z_w = look(self._patches.reshape(-1, 2))
-        k_w, z_w = k_w.reshape(4, -1), z_w.reshape(4, -1)
+        k_w, _, g_w = look(self._patches.reshape(-1, 2))
+        k_w, g_w = k_w.reshape(4, -1), g_w.reshape(4, -1)
         if not k_w.all():
             return UNKNOWN
         t = self.cfg.traverse
-        heights = z_w.max(axis=1)  # each wheel rests on the highest ground of its patch
+        heights = g_w.max(axis=1)  # each wheel rests on the highest ground of its patch
         coef = self._wheel_fit @ heights
         # A wheel's patch, less the wheels' plane, spans no more than the drop limit (the
         # plane taken out: a patch on a slope is not rough), and each wheel sits on the plane.
-        rel = z_w - (coef[0] + self._patches @ coef[1:])
+        # The ground is each cell's lowest return: a ledge's edge stays sharp in it.
+        rel = g_w - (coef[0] + self._patches @ coef[1:])
         if (rel.max(axis=1) - rel.min(axis=1) > t.wheel_drop_m).any():
             return WHEEL_DROP
         if np.abs(heights - np.c_[np.ones(4), self._wheels] @ coef).max() > t.wheel_drop_m:
@@ -402,10 +415,11 @@ class TerrainMap:
                 or math.hypot(coef[1], coef[2]) > self._tan_slope):
             return TILT
         plane = coef[0] + self._samples @ coef[1:]
-        over = np.where(k_s, z_s - plane, 0.0)
+        over = np.where(k_s, z_s - plane, 0.0)  # what stands there: each cell's highest
         if over.max() > self.belly_m:
             return BELLY
-        if (-over[self._in_body]).max() > t.wheel_drop_m:
+        under = np.where(k_s, plane - g_s, 0.0)
+        if under[self._in_body].max() > t.wheel_drop_m:
             return WHEEL_DROP
         return None
 
@@ -432,13 +446,21 @@ class TerrainMap:
         return True
 
     def admit(self, states: list[tuple[float, float, float]]) -> str | None:
-        """ACE along a motion through ``states`` (the first, where the rover stands, is not
-        judged): the first hazard found, counted in :attr:`refused`, or None."""
-        for pose in densify(states, ACE_SPACING_M, ACE_TURN_RAD)[1:]:
+        """ACE along a motion through ``states``: the first hazard found, counted in
+        :attr:`refused`, or None. The first state, where the rover stands, is not judged; if
+        ACE refuses it (new returns showed a rock's flank under a wheel, say), poses within
+        ``LEAVE_M`` of it may show the same hazard (the rover is leaving it), never another,
+        and never unknown ground."""
+        poses = densify(states, ACE_SPACING_M, ACE_TURN_RAD)
+        here = self.assess(*poses[0]) if poses else None
+        x0, y0 = poses[0][:2]
+        for pose in poses[1:]:
             hazard = self.assess(*pose)
-            if hazard is not None:
-                self.refused[hazard] += 1
-                return hazard
+            if hazard is None or (hazard == here and hazard != UNKNOWN
+                                  and math.hypot(pose[0] - x0, pose[1] - y0) <= LEAVE_M):
+                continue
+            self.refused[hazard] += 1
+            return hazard
         return None
 
     def backout(self, here: tuple[float, float, float], budget_m: float, steps: int,
