@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from ecosystem.taps import tapped_topics
 from mission.clock import MissionClock
 from mission.inbox import Inbox
 from mission.journal import JOURNAL, Journal, JournalServer
@@ -165,8 +166,11 @@ class ProcessSetTransport:
             self._restore(self._resume)
         self.supervisor = ProcessSupervisor(LAUNCHED, self._command, out / "logs",
                                             cfg.max_restarts)
+        # The taps (the flight recorder, the live view) get every topic, also those no module
+        # reads (the hazard cameras' intrinsics, the traversability map).
+        tapped = set(tapped_topics()) - {"status"} if self.taps else set()
         self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_sample(t))
-                      for t in watched | (self.journal.topics - {"status"})]
+                      for t in watched | (self.journal.topics - {"status"}) | tapped]
         self._alive_sub = self.session.liveliness().declare_subscriber(
             self.keys.alive_all, self._on_alive, history=True)
         self._token = self.session.liveliness().declare_token(self.keys.alive("mission"))
