@@ -615,10 +615,20 @@ def save_config(cfg: MissionConfig, path: Path) -> None:
     path.write_text(json.dumps(to_dict(cfg), indent=2) + "\n")
 
 
+#: Settings that no longer exist, dropped from a saved config: ``planner.known_ground_only``
+#: (issue 26: the rover's traversability layer refuses unknown ground; the setting trusted
+#: predicted ground and had no counterpart left).
+RETIRED_KEYS = (("planner", "known_ground_only"),)
+
+
 def load_config(path: Path) -> MissionConfig:
     """Load a saved config; a bad file gives one line saying what and how to fix it."""
     try:
-        return from_dict(MissionConfig, json.loads(Path(path).read_text()))
+        data = json.loads(Path(path).read_text())
+        for section, key in RETIRED_KEYS:  # a config saved before the key was retired
+            if isinstance(data, dict) and isinstance(data.get(section), dict):
+                data[section].pop(key, None)
+        return from_dict(MissionConfig, data)
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist; pass the config.json that "
                           "`rovergate run` wrote, or leave --config out") from None

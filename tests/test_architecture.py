@@ -142,3 +142,19 @@ def test_readme_benchmark_commands_run_as_written():
         r = subprocess.run([sys.executable, program, "--help"], cwd=ROOT, capture_output=True,
                            text=True, timeout=120)
         assert r.returncode == 0 and "usage" in r.stdout.lower(), (program, r.stderr[-1500:])
+
+
+def test_a_config_saved_before_a_setting_was_retired_still_loads(tmp_path):
+    import json
+
+    from rovergate.config import load_config, save_config
+    path = tmp_path / "config.json"
+    save_config(MissionConfig(), path)
+    data = json.loads(path.read_text())
+    data["planner"]["known_ground_only"] = True  # retired by issue 26
+    path.write_text(json.dumps(data))
+    assert load_config(path).planner == MissionConfig().planner
+    data["planner"]["no_such_setting"] = 1  # anything else is still refused, by name
+    path.write_text(json.dumps(data))
+    with pytest.raises(ConfigError, match="no_such_setting"):
+        load_config(path)
