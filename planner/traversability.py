@@ -47,7 +47,7 @@ from collections import Counter
 import numpy as np
 
 from rovergate.config import MissionConfig
-from rovergate.geometry import HAZCAMS, hazcam_from_base
+from rovergate.geometry import HAZCAMS, densify_se2, hazcam_from_base
 from rovergate.types import CameraIntrinsics, TraversabilityGrid
 
 UNKNOWN, BELLY, WHEEL_DROP, TILT = "unknown", "belly", "wheel-drop", "tilt"
@@ -72,11 +72,11 @@ GROUND_WINDOW = 3
 
 
 def _window_reduce(a: np.ndarray, r: int, op) -> np.ndarray:
-    """``op`` (np.minimum / np.maximum / np.logical_or) over each (2r+1)^2 box, edges padded
-    with the identity of ``op``."""
+    """``op`` (np.minimum or np.maximum) over each (2r+1)^2 box, edges padded with the
+    identity of ``op``."""
     if r == 0:
         return a.copy()
-    fill = {np.minimum: np.inf, np.maximum: -np.inf, np.logical_or: False}[op]
+    fill = {np.minimum: np.inf, np.maximum: -np.inf}[op]
     p = np.pad(a, r, constant_values=fill)
     h, w = a.shape
     rows = p[:, :w].copy()
@@ -451,7 +451,7 @@ class TerrainMap:
         ACE refuses it (new returns showed a rock's flank under a wheel, say), poses within
         ``LEAVE_M`` of it may show the same hazard (the rover is leaving it), never another,
         and never unknown ground."""
-        poses = densify(states, ACE_SPACING_M, ACE_TURN_RAD)
+        poses = densify_se2(states, ACE_SPACING_M, ACE_TURN_RAD)
         here = self.assess(*poses[0]) if poses else None
         x0, y0 = poses[0][:2]
         for pose in poses[1:]:
@@ -481,7 +481,7 @@ class TerrainMap:
                     break
                 p = (last[0] + f * (p[0] - last[0]), last[1] + f * (p[1] - last[1]), p[2])
                 d = f * d
-            seg = densify([last, p], ACE_SPACING_M, ACE_TURN_RAD)[1:]
+            seg = densify_se2([last, p], ACE_SPACING_M, ACE_TURN_RAD)[1:]
             if any(self.assess(*s) is not None or (extra_ok is not None and not extra_ok(s))
                    for s in seg):
                 break
@@ -490,23 +490,3 @@ class TerrainMap:
             if length >= budget_m - 1e-9:
                 break
         return way
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def densify(states: list[tuple[float, ...]], spacing_m: float, max_turn_rad: float
-            ) -> list[tuple[float, float, float]]:
-    """The poses along straight SE(2) motions through ``states`` (x, y and heading together,
-    as OMPL and the simulator interpolate them), at most ``spacing_m`` and ``max_turn_rad``
-    apart."""
-    out = [tuple(states[0][:3])]
-    for (x0, y0, a0), (x1, y1, a1) in zip([s[:3] for s in states[:-1]],
-                                          [s[:3] for s in states[1:]], strict=True):
-        da = _wrap(a1 - a0)
-        n = max(1, math.ceil(max(math.hypot(x1 - x0, y1 - y0) / spacing_m,
-                                 abs(da) / max_turn_rad)))
-        out += [(x0 + f * (x1 - x0), y0 + f * (y1 - y0), _wrap(a0 + f * da))
-                for f in (q / n for q in range(1, n + 1))]
-    return out

@@ -17,7 +17,7 @@ import numpy as np
 
 from rover_sim.scene import Scene
 from rovergate.config import RoverConfig
-from rovergate.geometry import rot_x, rot_y, rot_z
+from rovergate.geometry import densify_se2, rot_x, rot_y, rot_z
 
 
 @dataclass
@@ -115,7 +115,7 @@ class RoverBody:
         The rover stops at the last collision-free sample before the first collision, or before
         the first untraversable one (the start itself is not judged: the rover may leave it).
         """
-        samples = _densify([start, *waypoints], self.cfg.check_spacing_m)
+        samples = densify_se2([start, *waypoints], self.cfg.check_spacing_m)
         total = _length(samples)
         clear = []
         min_clear = np.inf
@@ -164,23 +164,6 @@ def contact_point(body: fcl.CollisionObject, scene: fcl.CollisionObject
     if not fcl.collide(body, scene, request, result) or not result.contacts:
         return None
     return tuple(float(v) for v in result.contacts[0].pos)
-
-
-def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
-
-
-def _densify(poses: list[tuple[float, float, float]], spacing_m: float,
-             max_turn_rad: float = np.radians(5.0)) -> list[tuple[float, float, float]]:
-    out = [poses[0]]
-    for (x0, y0, a0), (x1, y1, a1) in zip(poses[:-1], poses[1:], strict=True):
-        da = _wrap(a1 - a0)
-        n = max(1, int(np.ceil(max(np.hypot(x1 - x0, y1 - y0) / spacing_m,
-                                   abs(da) / max_turn_rad))))
-        for k in range(1, n + 1):
-            f = k / n
-            out.append((x0 + f * (x1 - x0), y0 + f * (y1 - y0), _wrap(a0 + f * da)))
-    return out
 
 
 def _length(poses: list[tuple[float, float, float]]) -> float:

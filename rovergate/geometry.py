@@ -80,6 +80,28 @@ def hazcam_from_base(T_map_base: np.ndarray, hazcam: HazcamConfig, which: str) -
     return T_map_base @ T_base_cam
 
 
+def wrap_angle(a: float) -> float:
+    """``a`` in [-pi, pi)."""
+    return float((a + np.pi) % (2 * np.pi) - np.pi)
+
+
+def densify_se2(poses: list[tuple[float, ...]], spacing_m: float,
+                max_turn_rad: float = np.radians(5.0)) -> list[tuple[float, float, float]]:
+    """The poses along straight SE(2) motions through ``poses`` (x, y and heading together,
+    as OMPL interpolates them and the simulator executes them), at most ``spacing_m`` and
+    ``max_turn_rad`` apart, the first pose included."""
+    out = [tuple(poses[0][:3])]
+    for (x0, y0, a0), (x1, y1, a1) in zip([p[:3] for p in poses[:-1]],
+                                          [p[:3] for p in poses[1:]], strict=True):
+        da = wrap_angle(a1 - a0)
+        n = max(1, int(np.ceil(max(np.hypot(x1 - x0, y1 - y0) / spacing_m,
+                                   abs(da) / max_turn_rad))))
+        for k in range(1, n + 1):
+            f = k / n
+            out.append((x0 + f * (x1 - x0), y0 + f * (y1 - y0), wrap_angle(a0 + f * da)))
+    return out
+
+
 def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
     """(4,) unit quaternion (x, y, z, w) -> (3, 3) rotation matrix."""
     x, y, z, w = (float(v) for v in q_xyzw)

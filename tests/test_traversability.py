@@ -9,10 +9,11 @@ import trimesh
 
 from planner.planner import GreedyPlanner
 from planner.platforms import RoverModel
-from planner.traversability import BELLY, UNKNOWN, WHEEL_DROP, TerrainMap, densify
+from planner.traversability import BELLY, UNKNOWN, WHEEL_DROP, TerrainMap
 from rover_sim.scene import Scene
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
+from rovergate.geometry import densify_se2
 from rovergate.types import PLANNER_DTYPE, PlannerMap, Pose, Source, make_cloud
 
 BOUNDS = (-8.0, -8.0, -4.0, 8.0, 8.0, 4.0)
@@ -166,7 +167,7 @@ def test_a_rover_walled_in_by_predictions_backs_out_the_way_it_came():
 
 
 def test_densify_keeps_spacing_and_turn_limits():
-    poses = densify([(0.0, 0.0, 0.0), (1.0, 0.0, np.pi / 2)], 0.1, np.radians(5))
+    poses = densify_se2([(0.0, 0.0, 0.0), (1.0, 0.0, np.pi / 2)], 0.1, np.radians(5))
     xy = np.array([p[:2] for p in poses])
     assert np.linalg.norm(np.diff(xy, axis=0), axis=1).max() <= 0.1 + 1e-9
     assert np.abs(np.diff([p[2] for p in poses])).max() <= np.radians(5) + 1e-9
