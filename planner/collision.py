@@ -70,10 +70,10 @@ class OccupancyCollisionModel:
         the ground, a map point's height is taken over it rather than over the map's own
         estimate (the lowest points of 0.5 m cells, which sinks below a crest and makes the
         ground of a crater's rim an obstacle). ``predicted``: (N,) bool, the points that are
-        predictions, not measurements. A cell's
-        ground comes from its measured points when it has any: a prediction's height is
-        uncertain by its voxel, and one low predicted point would sink the ground estimate
-        under everything measured around it. ``contacts``: points where the rover touched the
+        predictions, not measurements. A cell's ground comes from its measured points when it
+        has any: a prediction's height is uncertain by its voxel, and one low predicted point
+        would sink the ground estimate under everything measured around it; then from
+        ``ground_ref`` where it knows the cell's centre; then from its predictions. ``contacts``: points where the rover touched the
         scene: obstacles whatever their height (a bumper's reading, not ground)."""
         self.rover = rover
         self._ground_ref = ground_ref
@@ -102,6 +102,17 @@ class OccupancyCollisionModel:
             guess = np.full(self.shape, np.inf)
             only = inside & predicted
             np.minimum.at(guess.reshape(-1), flat[only], z[only])
+            if ground_ref is not None:
+                # A cell whose ground only predictions give, where the rover measured the
+                # ground: the measurement (the camera's rays stopped on that surface, so no
+                # prediction under it can be ground; one above it is still judged as an
+                # obstacle against it, _map_obstacles).
+                ii, jj = np.nonzero(np.isfinite(guess) & ~np.isfinite(grid))
+                if len(ii):
+                    centres = np.c_[self._ox + (jj + 0.5) * self.cell,
+                                    self._oy + (ii + 0.5) * self.cell]
+                    known, zref = ground_ref(centres)
+                    guess[ii[known], jj[known]] = zref[known]
             grid = np.where(np.isfinite(grid), grid, guess)
         half_diag = np.hypot(rover.length_m, rover.width_m) / 2
         size = 2 * int(np.ceil(half_diag / ground_cell_m)) + 1

@@ -109,10 +109,19 @@ def plan_seed(cfg: MissionConfig, step: int, tried: int) -> int:
 
 def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) -> PlanResult:
     """No candidate was feasible: turn in place where the turn is free (a quarter turn, left
-    first; the rover also right), else leave the spot the map blocks, else back out along
-    the way the rover came (:meth:`MotionModel.backout`: checked by its traversability layer
-    alone, as it stood at every pose of it), else stay. Every motion passes the layer's ACE."""
+    first; the rover also right, then smaller turns), else leave the spot the map blocks,
+    else back out along the way the rover came (:meth:`MotionModel.backout`: checked by its
+    traversability layer alone, as it stood at every pose of it), else stay. Where the rover
+    has dithered lately (:meth:`MotionModel.stale`), it backs out first of all. Every motion
+    passes the layer's ACE."""
     tried = GreedyPlanner._to_path(step, rejected, model)
+    start = model.state_of(T_map_base)
+    # Turning in place where the rover has dithered lately has shown it nothing it can
+    # drive to: back out first.
+    way = model.backout(start) if model.stale([start])[0] else []
+    if way:
+        return PlanResult(GreedyPlanner._to_path(step, [start, *way], model), 0, len(rejected),
+                          "backout", tried)
     for turn in model.turns(model.current):
         if model.is_free_turn(turn) and model.admit(model.prefix + [model.current, turn]) is None:
             return PlanResult(motion(step, [model.current, turn], model), 0, len(rejected),
@@ -120,7 +129,6 @@ def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) ->
     if model.prefix and model.admit(model.prefix + [model.current]) is None:
         return PlanResult(motion(step, [model.current], model), 0, len(rejected), "escape",
                           tried)
-    start = model.state_of(T_map_base)
     way = model.backout(start)
     if way:
         return PlanResult(GreedyPlanner._to_path(step, [start, *way], model), 0, len(rejected),
@@ -138,7 +146,9 @@ class GreedyPlanner(Planner):
 
     Sample candidate states within ``max_step_m``; score each by rendered gain on the
     planner-facing map; try them best first with OMPL (RRT-Connect in the platform's space,
-    checked against the same map) until one is feasible within the budget.
+    checked against the same map) until one is feasible within the budget. The rover tries
+    candidates near where it dithered lately last (:meth:`MotionModel.stale`): the gain of
+    a few novel points that its views never count as seen otherwise holds it in one place.
     """
 
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
@@ -151,7 +161,8 @@ class GreedyPlanner(Planner):
                          dtype=np.int64)
         here = np.array(model.current[:3 if cfg.platform == "flyer" else 2])
         travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
-        order = np.lexsort((travel, -gains))  # best gain first, then the nearer
+        # Best gain first, then the nearer; where the rover dithered lately, last.
+        order = np.lexsort((travel, -gains, model.stale(candidates)))
         rejected = []
         for i in order[: pc.max_attempts]:
             goal = candidates[i]
@@ -265,7 +276,9 @@ class BeamPlanner(Planner):
             for c in children:
                 best_of_first[c.first] = max(best_of_first[c.first], c.gain)
             beam = sorted(children, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
-        order = sorted(firsts, key=lambda t: (-best_of_first[t.first], t.travel_m))
+        stale = model.stale([t.states[1] for t in firsts])
+        order = [t for _, t in sorted(zip(stale, firsts, strict=True), key=lambda p: (
+            bool(p[0]), -best_of_first[p[1].first], p[1].travel_m))]
         rejected = list(blocked)  # the first motions found blocked, then OMPL's failures
         for tried, t in enumerate(order[: pc.max_attempts]):
             goal = t.states[1]

@@ -26,7 +26,7 @@ import abc
 
 import numpy as np
 
-from planner.collision import FlyerCollisionModel, OccupancyCollisionModel
+from planner.collision import BODY_MARGIN_M, FlyerCollisionModel, OccupancyCollisionModel
 from planner.freespace import FreeSpace
 from planner.motion import plan_r3, plan_se2
 from planner.traversability import BELLY, TerrainMap
@@ -44,6 +44,8 @@ ESCAPE_M = 0.6
 ESCAPE_STEP_M = 0.05
 #: The rover's escape turns in place by these angles (degrees) before it drives, first to last.
 ESCAPE_TURNS_DEG = (0, 20, -20, 45, -45, 90, -90)
+#: The rover's turns in place when no candidate is feasible (degrees), first to last.
+FALLBACK_TURNS_DEG = (90, -90, 45, -45, 20, -20)
 #: The rover with a traversability layer draws this many times the candidates it needs and
 #: keeps those on ground it can drive (RoverModel.sample).
 SAMPLE_OVERDRAW = 4
@@ -91,6 +93,12 @@ class MotionModel(abc.ABC):
         """Count why the traversability layer refuses a candidate the planner drops (the
         rover's :meth:`planner.traversability.TerrainMap.why_not`; nothing on the flyer)."""
         return None
+
+    def stale(self, states: list[State]) -> np.ndarray:
+        """(N,) bool: candidate states the planner should try last, as the platform dithered
+        there lately (the rover's :meth:`planner.traversability.TerrainMap.dither_spots`;
+        none on the flyer)."""
+        return np.zeros(len(states), dtype=bool)
 
     def backout(self, start: State) -> list[State]:
         """The rover's way back along where it came from (checked by its traversability
@@ -201,14 +209,21 @@ def outside_body(points: np.ndarray, T_map_base: Pose, rover: RoverConfig,
 
     The body occupies that space, so nothing the map holds there can be real (a robot's self
     filter); a learned prediction in the mast camera's blind band around the rover otherwise
-    boxes the rover in where it stands, with no motion left that the map calls free.
+    boxes the rover in where it stands, with no motion left that the map calls free. The
+    space is the body as the collision model checks it, its height band widened by
+    ``BODY_MARGIN_M`` below and above (:mod:`planner.collision`): a point under the belly in
+    that band would block the rover where it already stands, and anything real there is
+    lower than its true clearance, so it passes under the body wherever the body goes
+    (the traversability layer's ACE judges the ground under the belly from measured
+    returns).
     """
     if len(points) == 0:
         return np.ones(0, dtype=bool)
     p = (points - T_map_base.position) @ T_map_base.matrix()[:3, :3]  # base frame
     inside = ((np.abs(p[:, 0]) <= rover.length_m / 2 + margin_m)
               & (np.abs(p[:, 1]) <= rover.width_m / 2 + margin_m)
-              & (p[:, 2] > rover.clearance_m) & (p[:, 2] < rover.body_top_m))
+              & (p[:, 2] > rover.clearance_m - BODY_MARGIN_M)
+              & (p[:, 2] < rover.body_top_m + BODY_MARGIN_M))
     return ~inside
 
 
@@ -278,6 +293,14 @@ class RoverModel(MotionModel):
         if self.terrain is not None:
             self.terrain.why_not(*state[:3])
 
+    def stale(self, states: list[State]) -> np.ndarray:
+        spots = np.zeros((0, 2)) if self.terrain is None else self.terrain.dither_spots()
+        if not len(spots) or not len(states):
+            return np.zeros(len(states), dtype=bool)
+        xy = np.array([s[:2] for s in states], dtype=np.float64)
+        d = np.linalg.norm(xy[:, None, :] - spots[None], axis=2).min(axis=1)
+        return d < self.cfg.traverse.dither_radius_m
+
     def backout(self, start: State) -> list[State]:
         if self.terrain is None:
             return []
@@ -302,7 +325,10 @@ class RoverModel(MotionModel):
         return (s[0], s[1], s[2] + np.pi / 2)
 
     def turns(self, s: State) -> list[State]:
-        return [self.turn(s), (s[0], s[1], s[2] - np.pi / 2)]
+        """Quarter turns either way, then smaller ones (``FALLBACK_TURNS_DEG``): beside the
+        body is ground no camera has seen, and a smaller turn sweeps less of it, while each
+        turn shows the hazard cameras more of it for the next step."""
+        return [(s[0], s[1], s[2] + np.radians(a)) for a in FALLBACK_TURNS_DEG]
 
     def escape_way(self) -> list[State]:
         """The shortest of: a turn in place of at most 90 degrees (or none), then a straight

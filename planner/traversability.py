@@ -146,7 +146,10 @@ class TerrainMap:
         self.band_m = r.body_top_m + t.side_margin_m
         self.belly_m = r.clearance_m - t.belly_margin_m
         self.trail: list[tuple[float, float, float]] = []
-        """The base state (x, y, yaw) the rover reached at each step, oldest first."""
+        """The base state (x, y, yaw) the rover reached at each step, oldest first, cut back
+        where it returned (a back-out)."""
+        self.visited: list[tuple[float, float]] = []
+        """Where the rover stood at each step, oldest first, never cut."""
         self.refused: Counter[str] = Counter()
         """Motions refused so far, by hazard."""
         self._rays: dict[tuple, np.ndarray] = {}
@@ -218,6 +221,7 @@ class TerrainMap:
                 del self.trail[k:]
                 break
         self.trail.append((float(p[0]), float(p[1]), yaw))
+        self.visited.append((float(p[0]), float(p[1])))
         xy_body = self._samples
         pts = np.c_[xy_body, np.zeros(len(xy_body))] @ R.T + p
         i, j = self._cells(pts[:, :2])
@@ -462,6 +466,18 @@ class TerrainMap:
             self.refused[hazard] += 1
             return hazard
         return None
+
+    def dither_spots(self) -> np.ndarray:
+        """(K, 2) where the rover stood at the steps of the last ``dither_memory`` that ended
+        a dither (``TraverseConfig.dither_window``): places its planner should leave."""
+        t = self.cfg.traverse
+        p = np.asarray(self.visited, dtype=np.float64).reshape(-1, 2)
+        w = t.dither_window
+        if len(p) <= w:
+            return np.zeros((0, 2))
+        moved = np.linalg.norm(p[w:] - p[:-w], axis=1)
+        ends = np.flatnonzero(moved < t.dither_min_m) + w
+        return p[ends[ends >= len(p) - t.dither_memory]]
 
     def backout(self, here: tuple[float, float, float], budget_m: float, steps: int,
                 extra_ok=None) -> list[tuple[float, float, float]]:

@@ -168,6 +168,17 @@ class TraverseConfig:
     """The footprint checked is the body widened by this on every side."""
     backout_steps: int = 6
     """How many past poses a rover with no forward motion may back out along."""
+    dither_window: int = 5
+    """A step ends a dither when the rover stands within ``dither_min_m`` of where it stood
+    this many steps before: its motions have gone nowhere (greedy view selection pulled back
+    and forth by the same gain)."""
+    dither_min_m: float = 1.0
+    """See ``dither_window``."""
+    dither_radius_m: float = 1.5
+    """Candidates within this of where a dither ended, over the last ``dither_memory`` steps,
+    are tried after all the others."""
+    dither_memory: int = 30
+    """How many steps a dither's spot is remembered."""
 
 
 @dataclass

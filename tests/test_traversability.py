@@ -14,7 +14,7 @@ from rover_sim.scene import Scene
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
 from rovergate.geometry import densify_se2
-from rovergate.types import PLANNER_DTYPE, PlannerMap, Pose, Source, make_cloud
+from rovergate.types import PLANNER_DTYPE, PlannerMap, Pose, Source, make_cloud, xyz
 
 BOUNDS = (-8.0, -8.0, -4.0, 8.0, 8.0, 4.0)
 
@@ -162,6 +162,78 @@ def test_a_rover_walled_in_by_predictions_backs_out_the_way_it_came():
         stay = GreedyPlanner(cfg).plan(0, PlannerMap(0, cloud), Pose.from_xyz_yaw(0, 0, 0, 0),
                                        terrain=fresh)
         assert stay.reason == "stay"
+    finally:
+        sim.close()
+
+
+def floor_and(predicted: np.ndarray, hole=None) -> tuple[np.ndarray, np.ndarray]:
+    """An observed floor at z = 0 around the origin (less the (xmin, ymin, xmax, ymax)
+    ``hole``) and ``predicted`` points: (points, predicted flags)."""
+    xs, ys = np.meshgrid(np.arange(-3.0, 3.0, 0.15), np.arange(-3.0, 3.0, 0.15))
+    floor = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)]
+    if hole is not None:
+        x0, y0, x1, y1 = hole
+        floor = floor[~((floor[:, 0] >= x0) & (floor[:, 0] < x1)
+                        & (floor[:, 1] >= y0) & (floor[:, 1] < y1))]
+    points = np.vstack([floor, predicted]).astype(np.float32)
+    return points, np.r_[np.zeros(len(floor), bool), np.ones(len(predicted), bool)]
+
+
+def test_a_prediction_under_the_belly_does_not_hold_the_rover_where_it_stands():
+    cfg, sim = built("flat")
+    try:
+        terrain = sensed(cfg, sim)
+        # Predicted points 0.2 m up (in the margin band under the 0.25 m belly): under the
+        # body where it stands, and 1.5 m ahead.
+        points, source = floor_and(np.array([[0.1, -0.2, 0.2], [1.5, 0.0, 0.2]]))
+        model = RoverModel(cfg, points, Pose.from_xyz_yaw(0, 0, 0, 0), predicted=source,
+                           terrain=terrain)
+        assert model.is_free(model.current)  # the body stands over it: not an obstacle
+        assert not model.is_free((1.5, 0.0, 0.0))  # elsewhere it still blocks
+    finally:
+        sim.close()
+
+
+def test_measured_ground_beats_a_predicted_hole():
+    cfg, sim = built("flat")
+    try:
+        terrain = sensed(cfg, sim)
+        # One 0.5 m cell of the map's ground grid ahead (x 1.0-1.5) holds only predictions,
+        # 0.35 m under the floor the hazard camera measured there: the map's own estimate
+        # would read a step beyond the rover's limit.
+        xs, ys = np.meshgrid(np.arange(1.05, 1.5, 0.15), np.arange(-0.45, 0.0, 0.15))
+        hole = np.c_[xs.ravel(), ys.ravel(), np.full(xs.size, -0.35)]
+        points, source = floor_and(hole, hole=(1.0, -0.5, 1.5, 0.0))
+        here = Pose.from_xyz_yaw(0, 0, 0, 0)
+        map_only = RoverModel(cfg, points, here, predicted=source)
+        with_layer = RoverModel(cfg, points, here, predicted=source, terrain=terrain)
+        assert not map_only.ground.traversable(1.2, 0.0, 0.0)
+        assert with_layer.ground.traversable(1.2, 0.0, 0.0)
+        assert with_layer.is_free((1.2, 0.0, 0.0))
+    finally:
+        sim.close()
+
+
+def test_a_dithering_rover_tries_somewhere_else_first():
+    cfg, sim = built("flat")
+    try:
+        # Seven steps within 0.2 m of the origin: a dither (5 steps, under 1 m net).
+        poses = [(0.02 * k * (-1) ** k, 0.0, 0.0) for k in range(7)] + [(0.0, 0.0, 0.0)]
+        dithered = sensed(cfg, sim, poses)
+        assert len(dithered.dither_spots()) > 0
+        cloud = make_cloud(floor_and(np.zeros((0, 3)))[0], PLANNER_DTYPE,
+                           source=Source.OBSERVED, views=5)  # nothing novel: no gain anywhere
+        here = Pose.from_xyz_yaw(0, 0, 0, 0)
+        model = RoverModel(cfg, xyz(cloud), here, terrain=dithered)
+        assert model.stale([(0.5, 0.0, 0.0), (2.5, 0.0, 0.0)]).tolist() == [True, False]
+
+        def goal_distance(terrain: TerrainMap) -> float:
+            result = GreedyPlanner(cfg).plan(8, PlannerMap(8, cloud), here, terrain=terrain)
+            assert result.reason == "best-feasible"
+            return float(np.linalg.norm(result.path.poses[-1].position[:2]))
+        # Without gain the nearest candidate wins; after a dither, one beyond its radius.
+        assert goal_distance(sensed(cfg, sim)) < cfg.traverse.dither_radius_m
+        assert goal_distance(dithered) >= cfg.traverse.dither_radius_m
     finally:
         sim.close()
 
