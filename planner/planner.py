@@ -164,7 +164,10 @@ class GreedyPlanner(Planner):
         # Best gain first, then the nearer; where the rover dithered lately, last.
         order = np.lexsort((travel, -gains, model.stale(candidates)))
         rejected = []
-        for i in order[: pc.max_attempts]:
+        # Where the rover dithered lately its best candidates have failed before: all of
+        # them are tried, not only the first max_attempts.
+        attempts = len(order) if model.stale([model.current])[0] else pc.max_attempts
+        for i in order[:attempts]:
             goal = candidates[i]
             model.refuse(goal)
             if model.is_free(goal):
