@@ -73,8 +73,9 @@ class OccupancyCollisionModel:
         predictions, not measurements. A cell's ground comes from its measured points when it
         has any: a prediction's height is uncertain by its voxel, and one low predicted point
         would sink the ground estimate under everything measured around it; then from
-        ``ground_ref`` where it knows the cell's centre; then from its predictions. ``contacts``: points where the rover touched the
-        scene: obstacles whatever their height (a bumper's reading, not ground)."""
+        ``ground_ref`` where it knows the cell's centre; then from its predictions.
+        ``contacts``: points where the rover touched the scene: obstacles whatever their
+        height (a bumper's reading, not ground)."""
         self.rover = rover
         self._ground_ref = ground_ref
         self._contacts = np.zeros((0, 3)) if contacts is None else np.asarray(contacts)
