@@ -116,12 +116,15 @@ def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) ->
     passes the layer's ACE."""
     tried = GreedyPlanner._to_path(step, rejected, model)
     start = model.state_of(T_map_base)
-    # Turning in place where the rover has dithered lately has shown it nothing it can
-    # drive to: back out first.
-    way = model.backout(start) if model.stale([start])[0] else []
-    if way:
+
+    def backout(way: list) -> PlanResult:
         return PlanResult(GreedyPlanner._to_path(step, [start, *way], model), 0, len(rejected),
                           "backout", tried)
+    # Turning in place where the rover has dithered lately has shown it nothing it can
+    # drive to: back out first.
+    way = model.backout(start) if model.stale([start])[0] else None
+    if way:
+        return backout(way)
     for turn in model.turns(model.current):
         if model.is_free_turn(turn) and model.admit(model.prefix + [model.current, turn]) is None:
             return PlanResult(motion(step, [model.current, turn], model), 0, len(rejected),
@@ -129,10 +132,10 @@ def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) ->
     if model.prefix and model.admit(model.prefix + [model.current]) is None:
         return PlanResult(motion(step, [model.current], model), 0, len(rejected), "escape",
                           tried)
-    way = model.backout(start)
+    if way is None:  # (not tried above)
+        way = model.backout(start)
     if way:
-        return PlanResult(GreedyPlanner._to_path(step, [start, *way], model), 0, len(rejected),
-                          "backout", tried)
+        return backout(way)
     return PlanResult(PlanPath(step, [T_map_base]), 0, len(rejected), "stay", tried)
 
 
@@ -279,9 +282,9 @@ class BeamPlanner(Planner):
             for c in children:
                 best_of_first[c.first] = max(best_of_first[c.first], c.gain)
             beam = sorted(children, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
-        stale = model.stale([t.states[1] for t in firsts])
-        order = [t for _, t in sorted(zip(stale, firsts, strict=True), key=lambda p: (
-            bool(p[0]), -best_of_first[p[1].first], p[1].travel_m))]
+        stale = model.stale([t.states[1] for t in firsts])  # indexed by t.first
+        order = sorted(firsts, key=lambda t: (bool(stale[t.first]), -best_of_first[t.first],
+                                              t.travel_m))
         rejected = list(blocked)  # the first motions found blocked, then OMPL's failures
         for tried, t in enumerate(order[: pc.max_attempts]):
             goal = t.states[1]
