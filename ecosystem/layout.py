@@ -74,8 +74,9 @@ def layout_json(namespace: str = "rover") -> str:
 
 def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
     """What the layout's panels show, drawn with matplotlib from a recorded mission's bag
-    (the last planner map, surface, path, depth image and status; the coverage of every
-    status): a picture for the README where the Foxglove app cannot run."""
+    (the last planner map, surface, traversability map, path, depth image, hazard-camera
+    images and status; the coverage of every status): a picture for the README where the
+    Foxglove app cannot run."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -86,7 +87,8 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
     from rovergate.messages import decode
     keys = Keys(namespace)
     wanted = {"/" + keys.key(t): t for t in ("planner_map", "surface", "base_pose", "depth",
-                                              "status")}
+                                              "status", "traversability", "hazcam_front",
+                                              "hazcam_rear")}
     last: dict[str, object] = {}
     coverage: list[tuple[int, float]] = []
     track: list[np.ndarray] = []
@@ -108,9 +110,15 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
     surface = decode("surface", last["surface"])[1]
     step, depth = decode("depth", last["depth"])
     status = last["status"]
+    hazcams = {end: decode(f"hazcam_{end}", last[f"hazcam_{end}"])
+               for end in ("front", "rear") if f"hazcam_{end}" in last}
+    hazcams = {end: image for end, image in hazcams.items() if image[1].size}
+    trav = decode("traversability", last["traversability"]) if "traversability" in last \
+        else None
 
-    fig = plt.figure(figsize=(12, 6.5))
-    grid = fig.add_gridspec(3, 2, width_ratios=(2, 1), height_ratios=(2, 1, 0.6))
+    fig = plt.figure(figsize=(13, 7.5))
+    grid = fig.add_gridspec(4, 3, width_ratios=(2.2, 0.6, 0.6),
+                            height_ratios=(1.6, 1, 1, 0.55))
     ax = fig.add_subplot(grid[:, 0])
     ax.scatter(surface["x"], surface["y"], s=0.2, c="#9a9a9a", label="observed surface")
     sc = ax.scatter(planner["x"], planner["y"], s=1.5, c=planner["source"], cmap="turbo",
@@ -124,16 +132,43 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
     cb.ax.set_yticklabels(["observed", "predicted", "oracle FN", "truth"])
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=3, markerscale=6,
               frameon=False)
-    ax = fig.add_subplot(grid[0, 1])
+    ax = fig.add_subplot(grid[0, 1:])
     shown = np.where(np.isfinite(depth), depth, np.nan)
     ax.imshow(shown, cmap="turbo")
     ax.set(title=f"image panel: depth, step {step}", xticks=[], yticks=[])
-    ax = fig.add_subplot(grid[1, 1])
+    for col, end in enumerate(("front", "rear"), start=1):
+        ax = fig.add_subplot(grid[1, col])
+        ax.set(xticks=[], yticks=[])
+        if end in hazcams:
+            image = hazcams[end][1]
+            ax.imshow(np.where(np.isfinite(image), image, np.nan), cmap="turbo")
+            ax.set_title(f"hazcam {end}, step {hazcams[end][0]}", fontsize=9)
+        else:
+            ax.set_title(f"hazcam {end}: none", fontsize=9)
+    ax = fig.add_subplot(grid[2, 1])
+    ax.set(xticks=[], yticks=[])
+    if trav is not None and trav[1].cells.size:
+        g = trav[1]
+        h, w = g.cells.shape
+        x0, y0 = g.origin_xy
+        shade = np.full((h, w, 3), 0.75)
+        shade[g.cells == 0] = (0.55, 0.85, 0.55)
+        shade[g.cells == 100] = (0.85, 0.15, 0.15)
+        ax.imshow(shade, origin="lower", interpolation="nearest",
+                  extent=(x0, x0 + w * g.resolution_m, y0, y0 + h * g.resolution_m))
+        ax.plot(xy[:, 0], xy[:, 1], "-", color="black", lw=1)
+        ax.plot(*xy[-1], "o", color="black", ms=4)
+        ax.set(xlim=(x0, x0 + w * g.resolution_m), ylim=(y0, y0 + h * g.resolution_m))
+        ax.set_title(f"traversability, step {trav[0]}\ngreen clear, red obstacle, grey "
+                     "unknown", fontsize=8)
+    else:
+        ax.set_title("traversability: none", fontsize=9)
+    ax = fig.add_subplot(grid[2, 2])
     steps, cov = zip(*coverage, strict=True)
     ax.plot(steps, cov, lw=2)
     ax.set(title="plot panel: coverage", xlabel="step", ylim=(0, 1))
     ax.grid(alpha=0.3)
-    ax = fig.add_subplot(grid[2, 1])
+    ax = fig.add_subplot(grid[3, 1:])
     ax.axis("off")
     ax.text(0, 0.5, f"mission status: step {status.step}/{status.steps_total}, "
                     f"{status.state}\ncondition {status.condition}, coverage "
