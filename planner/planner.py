@@ -111,9 +111,10 @@ def fallback(step: int, model: MotionModel, T_map_base: Pose, rejected: list) ->
     """No candidate was feasible: turn in place where the turn is free (a quarter turn, left
     first; the rover also right, then smaller turns), else leave the spot the map blocks,
     else back out along the way the rover came (:meth:`MotionModel.backout`: checked by its
-    traversability layer alone, as it stood at every pose of it), else stay. Where the rover
-    has dithered lately (:meth:`MotionModel.stale`), it backs out first of all. Every motion
-    passes the layer's ACE."""
+    traversability layer alone, as it stood at every pose of it), else stay (the simulator's
+    rover then pans its mast to look around, :data:`rover_sim.sim.LOOK_AROUND_DEG`). Where the
+    rover has dithered lately (:meth:`MotionModel.stale`), it backs out first of all. Every
+    motion passes the layer's ACE."""
     tried = GreedyPlanner._to_path(step, rejected, model)
     start = model.state_of(T_map_base)
 

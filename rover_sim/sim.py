@@ -33,6 +33,13 @@ from rovergate.types import ExecutionReport, PlanPath, Pose, SensorFrame
 
 log = logging.getLogger("rovergate.sim")
 
+#: The rover's look-around (``--rover.look-around``): the mast's pan, in degrees left, in the
+#: frames after the first, second and third step in a row that the rover did not move; it
+#: starts again from the first after the third.
+LOOK_AROUND_DEG = (90.0, -90.0, 180.0)
+#: Less than this far and this much turn in a step is not moving, for the look-around.
+HOLD_M, HOLD_DEG = 0.01, 1.0
+
 
 class RoverSim:
     """A platform in a true world: depth rendering, kinematic motion, collision reporting."""
@@ -64,6 +71,8 @@ class RoverSim:
         self.sensing = Sensing(cfg.sensing, cfg.seed)
         self._drift = np.eye(4)
         self._step = 0
+        self._held = 0
+        """Steps in a row the rover has not moved (the look-around's place in its cycle)."""
         self._truth_surface: np.ndarray | None = None
 
     @property
@@ -74,7 +83,7 @@ class RoverSim:
     def render(self, step: int) -> SensorFrame:
         """What the platform senses at its current pose (poses as it believes them)."""
         T_base = self.T_map_base
-        T_cam = camera_from_base(T_base, self.cfg.sensor, self.cfg.platform)
+        T_cam = camera_from_base(T_base, self.cfg.sensor, self.cfg.platform, self.look_deg)
         self.world.set_rover_pose(T_base)
         depth = self.world.render_depth(T_cam)
         depth = self.sensing.degrade(depth, self.world.intrinsics, step)
@@ -86,6 +95,22 @@ class RoverSim:
                            Pose.from_matrix(self._drift @ T_base),
                            self.sensing.pose_covariance(step, lever),
                            self.render_hazcams(T_base, step))
+
+    @property
+    def look_deg(self) -> float:
+        """The mast's look-around pan for the next frame (0: it faces forward)."""
+        if self.flying or not self.cfg.rover.look_around or not self._held:
+            return 0.0
+        return LOOK_AROUND_DEG[(self._held - 1) % len(LOOK_AROUND_DEG)]
+
+    def _note_hold(self, before: tuple[float, ...]) -> None:
+        """Count the steps in a row the rover has not moved (its look-around)."""
+        if self.flying:
+            return
+        moved = (np.hypot(self.state[0] - before[0], self.state[1] - before[1]) >= HOLD_M
+                 or abs(np.degrees(np.angle(np.exp(1j * (self.state[-1] - before[-1])))))
+                 >= HOLD_DEG)
+        self._held = 0 if moved else self._held + 1
 
     def render_hazcams(self, T_base: np.ndarray, step: int) -> dict[str, np.ndarray]:
         """The hazard cameras' depth at the true base pose, degraded as the mast's is (their
@@ -120,7 +145,9 @@ class RoverSim:
         if not waypoints:
             clear = (self.body.clearance(self.state[:3]) if self.flying
                      else self.body.clearance(self.T_map_base))
+            self._note_hold(self.state)
             return ExecutionReport(path.step, False, 0, clear, 0.0, 1.0, False, error)
+        before = self.state
         motion = self.body.drive(self.state, waypoints)
         if motion.collided:
             log.warning("step %d: the %s hit the true scene after %.2f m (%.0f%% of the "
@@ -130,6 +157,7 @@ class RoverSim:
             log.info("step %d: untraversable ground ahead after %.2f m; the rover stopped",
                      path.step, motion.length_m)
         self.state = motion.final_xy_yaw
+        self._note_hold(before)
         contact = None
         if motion.contact is not None:  # reported where the platform believes it is
             contact = tuple(float(v) for v in (self._drift @ np.r_[motion.contact, 1.0])[:3])

@@ -105,6 +105,11 @@ class RoverConfig:
     """Steepest ground the rover drives on (roll or pitch of the plane under its wheels)."""
     step_limit_m: float = 0.2
     """Highest step under the body: the ground may depart this far from the wheels' plane."""
+    look_around: bool = True
+    """A rover that did not move in a step pans its mast to look around: the next frame looks
+    90 degrees left, then right, then behind (one a step, for as long as it stays put), and
+    the mast faces forward again once it drives. A turn in place looks around too; this is
+    the look where no turn is free."""
 
 
 @dataclass

@@ -50,14 +50,16 @@ def check_platform(name: str) -> None:
 
 
 def camera_from_base(T_map_base: np.ndarray, sensor: SensorConfig,
-                     platform: str = "rover") -> np.ndarray:
-    """(4, 4) optical-frame pose of the camera for a base pose of ``platform``."""
+                     platform: str = "rover", look_deg: float = 0.0) -> np.ndarray:
+    """(4, 4) optical-frame pose of the camera for a base pose of ``platform``; the rover's
+    mast panned ``look_deg`` (left positive) beyond its mounting's ``pan_deg``."""
     if platform == "flyer":
         T = T_map_base.copy()
         T[:3, :3] = T_map_base[:3, :3] @ R_BODY_OPTICAL
         return T
     T_base_mast = np.eye(4)
-    T_base_mast[:3, :3] = rot_z(np.radians(sensor.pan_deg)) @ rot_y(-np.radians(sensor.tilt_deg))
+    T_base_mast[:3, :3] = (rot_z(np.radians(sensor.pan_deg + look_deg))
+                           @ rot_y(-np.radians(sensor.tilt_deg)))
     T_base_mast[:3, 3] = [sensor.mast_forward_m, 0.0, sensor.mast_height_m]
     T_mast_optical = np.eye(4)
     T_mast_optical[:3, :3] = R_BODY_OPTICAL

@@ -14,7 +14,15 @@ from rover_sim.scene import Scene
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
 from rovergate.geometry import densify_se2
-from rovergate.types import PLANNER_DTYPE, PlannerMap, Pose, Source, make_cloud, xyz
+from rovergate.types import (
+    PLANNER_DTYPE,
+    PlannerMap,
+    PlanPath,
+    Pose,
+    Source,
+    make_cloud,
+    xyz,
+)
 
 BOUNDS = (-8.0, -8.0, -4.0, 8.0, 8.0, 4.0)
 
@@ -164,6 +172,44 @@ def test_a_rover_walled_in_by_predictions_backs_out_the_way_it_came():
         assert stay.reason == "stay"
     finally:
         sim.close()
+
+
+def test_a_rover_that_stays_put_looks_around_with_its_mast():
+    # A tall box 4 m to the rover's left: out of the mast camera's view while it faces ahead.
+    box = trimesh.creation.box(extents=[1.0, 1.0, 1.5])
+    box.apply_translation([0.0, 4.0, 0.75])
+
+    def heading_deg(frame) -> float:  # where the optical axis (z) points, from above
+        R = frame.T_map_camera.matrix()
+        return round(float(np.degrees(np.arctan2(R[1, 2], R[0, 2]))))
+
+    def centre_depth(frame) -> float:
+        h, w = frame.depth_m.shape
+        return float(np.nanmedian(frame.depth_m[h // 2 - 4:h // 2 + 4, w // 2 - 4:w // 2 + 4]))
+
+    for look_around in (True, False):
+        cfg, sim = built("look", objects=[box])
+        cfg.rover.look_around = look_around
+        here = Pose.from_xyz_yaw(0.0, 0.0, 0.0, 0.0)
+        try:
+            frames = []
+            for step in range(5):  # the planner stays (a one-pose path) four times
+                frames.append(sim.render(step))
+                if step < 4:
+                    sim.execute(PlanPath(step, [here]))
+            sim.execute(PlanPath(5, [here, Pose.from_xyz_yaw(0.5, 0.0, 0.0, 0.0)]))
+            frames.append(sim.render(6))
+            headings = [heading_deg(f) for f in frames]
+            if look_around:
+                # Left, right, behind, left again; forward once it drives.
+                assert headings == [0, 90, -90, 180, 90, 0]
+                assert centre_depth(frames[1]) < 4.0 < 5.0 < centre_depth(frames[0])
+            else:
+                assert headings == [0] * 6
+            # The base does not turn: only the mast.
+            assert all(abs(f.T_map_base.yaw) < 1e-9 for f in frames)
+        finally:
+            sim.close()
 
 
 def floor_and(predicted: np.ndarray, hole=None) -> tuple[np.ndarray, np.ndarray]:
