@@ -145,6 +145,8 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             **{f"refused_{k.replace('-', '_')}": (m.get("refused_by_hazard") or {}).get(k)
                for k in HAZARD_KINDS},
             "backouts": m.get("backouts"),
+            "stays": (m["plan_reasons"].get("stay", 0) if m.get("plan_reasons") is not None
+                      else None),
             "fp_gain_share": m.get("fp_gain_share"),
             "rejected_by_fp": m.get("rejected_by_fp"),
             "coverage": m["coverage"],
@@ -477,10 +479,11 @@ def driving(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
     the runs under ``MIN_DRIVEN_M``), the closest approach to the true scene, the motions the
     rover's traversability layer refused by hazard, its backouts, and the layer's time per
     step (the median of the runs' medians)."""
-    lines = ["| Planner occupancy | runs | collisions | stuck steps (share) | runs stuck > "
-             f"{MAX_STUCK_STEPS} | least driven (m) | runs under {MIN_DRIVEN_M:.0f} m | "
-             "closest approach (m) | refused: unknown / wheel drop / tilt / belly | "
-             "backouts | layer (ms/step) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| Planner occupancy | runs | collisions (planner fault / unseen) | stuck steps "
+             f"(share) | runs stuck > {MAX_STUCK_STEPS} | least driven (m) | runs under "
+             f"{MIN_DRIVEN_M:.0f} m | closest approach (m) | refused: unknown / wheel drop / "
+             "tilt / belly | backouts | stays | layer (ms/step) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     figures: dict = {}
     for c in conditions:
         runs = [r for r in rows if r["condition"] == c]
@@ -501,21 +504,31 @@ def driving(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
                sum(d < MIN_DRIVEN_M for d in driven),
                "closest_approach_m": min(clear) if clear else None, "refused": refused,
                "backouts": int(sum(r.get("backouts") or 0 for r in runs)),
+               "stays": int(sum(r.get("stays") or 0 for r in runs)),
+               "collisions_planner_fault": int(sum(r.get("collisions_planner_fault") or 0
+                                                   for r in runs)),
+               "collisions_unseen": int(sum(r.get("collisions_unseen") or 0 for r in runs)),
                "traverse_ms_median": 1000 * float(np.median(layer)) if layer else None}
         figures[c] = fig
         lines.append(
-            f"| {LABELS.get(c, c)} | {len(runs)} | {fig['collisions']} | {fig['stuck_steps']} "
+            f"| {LABELS.get(c, c)} | {len(runs)} | {fig['collisions']} "
+            f"({fig['collisions_planner_fault']} / {fig['collisions_unseen']}) | "
+            f"{fig['stuck_steps']} "
             f"({100 * (fig['stuck_share'] or 0):.1f}%) | {fig['runs_stuck_over_max']} | "
             f"{fig['least_driven_m']:.1f} | {fig['runs_under_min_driven']} | "
             + _fmt(fig["closest_approach_m"], False, 2) + " | "
             + " / ".join(str(refused[k]) for k in HAZARD_KINDS)
-            + f" | {fig['backouts']} | " + _fmt(fig["traverse_ms_median"], False, 1) + " |")
+            + f" | {fig['backouts']} | {fig['stays']} | "
+            + _fmt(fig["traverse_ms_median"], False, 1) + " |")
     notes = ["", "Totals over every run of the condition. Stuck: under 0.5 m of net progress "
              "over the last 10 steps. Closest approach: the least clearance between the body "
              "and the true scene over every executed motion of every run (negative: a "
              "touch). Refused: candidate goals and motions the rover's traversability layer "
              "refused, by the first hazard found; backouts: steps the rover backed along the "
-             "way it came (planner/traversability.py). The layer's time is the planner's "
+             "way it came (planner/traversability.py); stays: steps the planner found no "
+             "way to move (the rover's mast then looks around). Collisions by class "
+             "(mission/evaluation.py): a planner fault touched what its map held, unseen "
+             "geometry what it did not. The layer's time is the planner's "
              "`traverse` stage: the frames into the height map and the step's masks."]
     return "\n".join(lines + notes) + "\n", figures
 
