@@ -12,7 +12,7 @@ import numpy as np
 from planner.freespace import FreeSpace
 from planner.planner import make_planner
 from planner.platforms import flyer_altitudes
-from planner.traversability import TerrainMap
+from planner.traversability import TerrainMap, driven_way
 from rovergate.config import MissionConfig
 from rovergate.graph import MODULES, Module
 from rovergate.module import Ask, LogicDefaults, StepOutput
@@ -26,9 +26,9 @@ class PlannerNode(LogicDefaults):
     seed and step; its state is what the platform learnt by moving: the flyer's known free
     space (carved from every frame so far and where the flyer has been), the rover's
     traversability layer (its height map from every frame of the mast and hazard cameras,
-    :mod:`planner.traversability`) and the points where it touched the scene (reported with
-    each execution, as a bumper would), which a restarted planner rebuilds by replaying
-    them."""
+    :mod:`planner.traversability`, with the way it came: its own last path, as far as the
+    execution got) and the points where it touched the scene (reported with each execution,
+    as a bumper would), which a restarted planner rebuilds by replaying them."""
 
     spec: ClassVar[Module] = MODULES["planner"]
 
@@ -56,7 +56,8 @@ class PlannerNode(LogicDefaults):
         if self.terrain is not None:
             self.terrain.add_step(step, inputs["base"].matrix(),
                                   (inputs["pose"].matrix(), inputs["info"], inputs["depth"]),
-                                  {"front": inputs.get("front"), "rear": inputs.get("rear")})
+                                  {"front": inputs.get("front"), "rear": inputs.get("rear")},
+                                  driven_way(inputs.get("path"), report))
 
     def handle(self, step: int, inputs: dict[str, Any]) -> StepOutput:
         t0 = time.perf_counter()

@@ -43,12 +43,13 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Sequence
 
 import numpy as np
 
 from rovergate.config import MissionConfig
 from rovergate.geometry import HAZCAMS, densify_se2, hazcam_from_base
-from rovergate.types import CameraIntrinsics, TraversabilityGrid
+from rovergate.types import CameraIntrinsics, ExecutionReport, PlanPath, TraversabilityGrid
 
 UNKNOWN, BELLY, WHEEL_DROP, TILT = "unknown", "belly", "wheel-drop", "tilt"
 #: The hazards a motion is refused for, in the order they are checked at each pose.
@@ -57,8 +58,8 @@ HAZARDS = (UNKNOWN, WHEEL_DROP, TILT, BELLY)
 #: Spacing of ACE's poses along a motion (and at most 5 degrees of turn between two).
 ACE_SPACING_M = 0.1
 ACE_TURN_RAD = math.radians(5.0)
-#: A pose within 0.1 m of one of the trail's last this many is a return to it: the trail is
-#: cut back to it (TerrainMap.add_base).
+#: A pose within 0.1 m of one the trail holds from the last this many steps is a return to
+#: it: the trail is cut back to it (TerrainMap.add_base).
 BACK_STEPS_KEPT = 12
 #: Within this distance of a start that ACE refuses, a motion may show the start's hazard.
 LEAVE_M = 0.5
@@ -128,6 +129,22 @@ def _dilate_disc(mask: np.ndarray, radius_cells: float) -> np.ndarray:
     return distance_transform_edt(~mask) <= radius_cells
 
 
+def driven_way(path: PlanPath | None, report: ExecutionReport | None
+               ) -> list[tuple[float, float, float]]:
+    """The states (x, y, yaw) between the start and the end of the last step's ``path``
+    that the rover drove through, as far as ``report`` says it got (a motion the bumper or
+    untraversable ground stopped ends early): the way it came, for the trail."""
+    if path is None or report is None or len(path.poses) < 3:
+        return []
+    states = [(float(p.position[0]), float(p.position[1]), p.yaw) for p in path.poses]
+    xy = np.array([s[:2] for s in states])
+    run = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
+    driven = report.executed_fraction * run[-1]
+    done = report.executed_fraction >= 1.0
+    return [s for s, d in zip(states[1:-1], run[1:-1], strict=True)
+            if done or d <= driven - 1e-6]
+
+
 class TerrainMap:
     """The height map of one mission, and the checks of the rover's motions on it."""
 
@@ -146,8 +163,11 @@ class TerrainMap:
         self.band_m = r.body_top_m + t.side_margin_m
         self.belly_m = r.clearance_m - t.belly_margin_m
         self.trail: list[tuple[float, float, float]] = []
-        """The base state (x, y, yaw) the rover reached at each step, oldest first, cut back
+        """The way the rover came: the base states (x, y, yaw) it drove through, oldest
+        first (each step's path as far as it was driven, then where it stood), cut back
         where it returned (a back-out)."""
+        self.trail_steps: list[int] = []
+        """The step (the count of bases taken in, from 0) of each state of :attr:`trail`."""
         self.visited: list[tuple[float, float]] = []
         """Where the rover stood at each step, oldest first, never cut."""
         self.refused: Counter[str] = Counter()
@@ -193,11 +213,12 @@ class TerrainMap:
     # --- building the map -------------------------------------------------------------------
 
     def add_step(self, step: int, T_map_base: np.ndarray, mast: tuple | None,
-                 hazcams: dict[str, np.ndarray]) -> None:
+                 hazcams: dict[str, np.ndarray], way: Sequence[tuple] = ()) -> None:
         """Take in one step: where the rover stands (``T_map_base``, 4 x 4), the mast frame
-        ``(T_map_camera, intrinsics, depth)`` and the hazard cameras' depth by name (their
-        poses follow from the base pose and the mounting)."""
-        self.add_base(T_map_base)
+        ``(T_map_camera, intrinsics, depth)``, the hazard cameras' depth by name (their
+        poses follow from the base pose and the mounting) and ``way``, the states (x, y,
+        yaw) the rover drove through since the last step (:func:`driven_way`)."""
+        self.add_base(T_map_base, way)
         if mast is not None:
             T_cam, k, depth = mast
             self.add_frame(step, T_cam, k, depth, self.cfg.traverse.mast_range_m)
@@ -208,19 +229,30 @@ class TerrainMap:
                                self.hazcam_k, depth, self.cfg.hazcam.max_range_m)
         self._win = None
 
-    def add_base(self, T_map_base: np.ndarray) -> None:
-        """The rover stands here: the cells of its footprint, widened by the side margin,
-        are known; where no return landed, their ground is the plane the base stands on."""
+    def add_base(self, T_map_base: np.ndarray, way: Sequence[tuple] = ()) -> None:
+        """The rover stands here, having driven through ``way`` since the last step: the
+        cells of its footprint, widened by the side margin, are known; where no return
+        landed, their ground is the plane the base stands on."""
         R, p = T_map_base[:3, :3], T_map_base[:3, 3]
         yaw = math.atan2(R[1, 0], R[0, 0])
-        # Back where it stood a few steps ago (a back-out): the poses since are a dead end
-        # it left, not a way back.
-        for k in range(len(self.trail) - 1, max(len(self.trail) - 1 - BACK_STEPS_KEPT, -1), -1):
+        n = len(self.visited)
+        # Back where it drove a few steps ago (a back-out): the way since is a dead end it
+        # left, not a way back (and the back-out retraced it).
+        returned = False
+        for k in range(len(self.trail) - 1, -1, -1):
+            if self.trail_steps[k] < n - BACK_STEPS_KEPT:
+                break
             q = self.trail[k]
             if math.hypot(q[0] - p[0], q[1] - p[1]) < 0.1:
-                del self.trail[k:]
+                del self.trail[k:], self.trail_steps[k:]
+                returned = True
                 break
+        if not returned:
+            for q in way:
+                self.trail.append((float(q[0]), float(q[1]), float(q[2])))
+                self.trail_steps.append(n)
         self.trail.append((float(p[0]), float(p[1]), yaw))
+        self.trail_steps.append(n)
         self.visited.append((float(p[0]), float(p[1])))
         xy_body = self._samples
         pts = np.c_[xy_body, np.zeros(len(xy_body))] @ R.T + p
@@ -481,13 +513,27 @@ class TerrainMap:
 
     def backout(self, here: tuple[float, float, float], budget_m: float, steps: int,
                 extra_ok=None) -> list[tuple[float, float, float]]:
-        """The way back along the poses of the last ``steps`` steps (most recent first, the
-        rover keeping each pose's heading, driving backwards), at most ``budget_m`` long,
-        as far as ACE (and ``extra_ok``, a state check) allows; empty if not one pose back.
-        The rover has stood at every one of them, so the way is over known ground."""
+        """The way back along the way the rover came in its last ``steps`` steps (most
+        recent first, the rover keeping each state's heading, driving backwards), at most
+        ``budget_m`` long, as far as ACE (and ``extra_ok``, a state check) allows, with
+        :meth:`admit`'s leave rule (a start ACE refuses may show its hazard within
+        ``LEAVE_M``); empty if not one state back. The rover drove through every one of them,
+        so the way is over known ground, swept as it was swept coming."""
         way: list[tuple[float, float, float]] = []
         last, length = here, 0.0
-        for p in reversed(self.trail[-steps - 1:-1] if steps else []):
+        start_hazard = self.assess(*here)
+
+        def leaving(s: tuple) -> bool:  # ACE passes, or it is leaving the start (as admit)
+            hazard = self.assess(*s)
+            return hazard is None or (hazard == start_hazard and hazard != UNKNOWN
+                                      and math.hypot(s[0] - here[0], s[1] - here[1]) <= LEAVE_M)
+        back: list[tuple[float, float, float]] = []
+        if steps and self.trail:
+            first = self.trail_steps[-1] - steps  # back to where it stood that step
+            j = next((k for k in range(len(self.trail) - 1, -1, -1)
+                      if self.trail_steps[k] <= first), 0)
+            back = self.trail[j:-1]
+        for p in reversed(back):
             d = math.hypot(p[0] - last[0], p[1] - last[1])
             if d < 0.05:
                 continue
@@ -498,8 +544,7 @@ class TerrainMap:
                 p = (last[0] + f * (p[0] - last[0]), last[1] + f * (p[1] - last[1]), p[2])
                 d = f * d
             seg = densify_se2([last, p], ACE_SPACING_M, ACE_TURN_RAD)[1:]
-            if any(self.assess(*s) is not None or (extra_ok is not None and not extra_ok(s))
-                   for s in seg):
+            if any(not leaving(s) or (extra_ok is not None and not extra_ok(s)) for s in seg):
                 break
             way.append(p)
             last, length = p, length + d
