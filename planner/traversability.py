@@ -130,13 +130,14 @@ def _dilate_disc(mask: np.ndarray, radius_cells: float) -> np.ndarray:
 
 
 def driven_way(path: PlanPath | None, report: ExecutionReport | None
-               ) -> list[tuple[float, float, float]]:
-    """The states (x, y, yaw) between the start and the end of the last step's ``path``
+               ) -> list[tuple[float, float, float, float]]:
+    """The states (x, y, yaw, z) between the start and the end of the last step's ``path``
     that the rover drove through, as far as ``report`` says it got (a motion the bumper or
     untraversable ground stopped ends early): the way it came, for the trail."""
     if path is None or report is None or len(path.poses) < 3:
         return []
-    states = [(float(p.position[0]), float(p.position[1]), p.yaw) for p in path.poses]
+    states = [(float(p.position[0]), float(p.position[1]), p.yaw, float(p.position[2]))
+              for p in path.poses]
     xy = np.array([s[:2] for s in states])
     run = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
     driven = report.executed_fraction * run[-1]
@@ -230,9 +231,9 @@ class TerrainMap:
         self._win = None
 
     def add_base(self, T_map_base: np.ndarray, way: Sequence[tuple] = ()) -> None:
-        """The rover stands here, having driven through ``way`` since the last step: the
-        cells of its footprint, widened by the side margin, are known; where no return
-        landed, their ground is the plane the base stands on."""
+        """The rover stands here, having driven through ``way`` (states x, y, yaw and, if
+        given, z) since the last step: the cells of its footprint here and along the way are
+        known (:meth:`_stand`), and the way goes on the trail."""
         R, p = T_map_base[:3, :3], T_map_base[:3, 3]
         yaw = math.atan2(R[1, 0], R[0, 0])
         n = len(self.visited)
@@ -254,6 +255,17 @@ class TerrainMap:
         self.trail.append((float(p[0]), float(p[1]), yaw))
         self.trail_steps.append(n)
         self.visited.append((float(p[0]), float(p[1])))
+        if not returned:
+            for q in way:  # (level, at the height the path gave it)
+                c, sn = math.cos(q[2]), math.sin(q[2])
+                self._stand(np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]),
+                            np.array([q[0], q[1], q[3] if len(q) > 3 else p[2]]))
+        self._stand(R, p)
+
+    def _stand(self, R: np.ndarray, p: np.ndarray) -> None:
+        """The body stood (or drove) at rotation ``R``, position ``p``: its footprint's
+        cells, widened by the side margin, are known; where no return landed, their ground
+        is the plane the base stood on."""
         xy_body = self._samples
         pts = np.c_[xy_body, np.zeros(len(xy_body))] @ R.T + p
         i, j = self._cells(pts[:, :2])

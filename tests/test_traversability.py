@@ -3,19 +3,22 @@ cameras see, and the motions it refuses (planner/traversability.py)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
 
 from planner.planner import GreedyPlanner
 from planner.platforms import RoverModel
-from planner.traversability import BELLY, UNKNOWN, WHEEL_DROP, TerrainMap
+from planner.traversability import BELLY, UNKNOWN, WHEEL_DROP, TerrainMap, driven_way
 from rover_sim.scene import Scene
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig
-from rovergate.geometry import densify_se2
+from rovergate.geometry import densify_se2, hazcam_from_base
 from rovergate.types import (
     PLANNER_DTYPE,
+    ExecutionReport,
     PlannerMap,
     PlanPath,
     Pose,
@@ -170,6 +173,50 @@ def test_a_rover_walled_in_by_predictions_backs_out_the_way_it_came():
         stay = GreedyPlanner(cfg).plan(0, PlannerMap(0, cloud), Pose.from_xyz_yaw(0, 0, 0, 0),
                                        terrain=fresh)
         assert stay.reason == "stay"
+    finally:
+        sim.close()
+
+
+def test_a_rover_backs_out_along_the_way_it_drove_not_straight_to_its_last_stop():
+    # It drove from A round a rock by W to C; the straight line from C back to A crosses
+    # the rock. Its last path (A, W, C), as far as the execution got, is its way back.
+    rock = trimesh.creation.box(extents=[0.4, 0.4, 0.4])
+    rock.apply_translation([-1.5, 0.0, 0.2])
+    cfg, sim = built("detour", objects=[rock])
+    A, W, C = (-3.0, 0.0, 0.0), (-1.5, 2.0, 0.0), (0.0, 0.0, 0.0)
+    try:
+        terrain = TerrainMap(cfg)
+        for step, (pose, way) in enumerate([(A, []), (C, [W])]):
+            for looked in ([pose] if not way else [*way, pose]):  # what it saw on the way
+                sim.state = looked
+                frame = sim.render(step)
+                if looked is pose:
+                    terrain.add_step(step, frame.T_map_base.matrix(),
+                                     (frame.T_map_camera.matrix(), frame.intrinsics,
+                                      frame.depth_m), frame.hazcams, way)
+                else:
+                    terrain.add_frame(step, frame.T_map_camera.matrix(), frame.intrinsics,
+                                      frame.depth_m, cfg.traverse.mast_range_m)
+                    for end, depth in frame.hazcams.items():
+                        terrain.add_frame(step, hazcam_from_base(frame.T_map_base.matrix(),
+                                                                 cfg.hazcam, end),
+                                          terrain.hazcam_k, depth, cfg.hazcam.max_range_m)
+        terrain.prepare(*C[:2])
+        path = PlanPath(0, [Pose.from_xyz_yaw(*q[:2], 0.0, q[2]) for q in (A, W, C)])
+        # The way as driven: all of it, or as far as the bumper let it get.
+        done = ExecutionReport(0, False, 0, 1.0, 4.0, 1.0)
+        assert [q[:3] for q in driven_way(path, done)] == [pytest.approx(W)]
+        assert driven_way(path, dataclasses.replace(done, executed_fraction=0.3)) == []
+        # The straight way back crosses the rock: ACE refuses it.
+        assert any(terrain.assess(*q) is not None
+                   for q in densify_se2([C, A], 0.1, np.radians(5.0)))
+        way = terrain.backout(C, cfg.planner.max_step_m, cfg.traverse.backout_steps)
+        assert way and way[0] == pytest.approx(W)
+        swept = densify_se2([C, *way], 0.1, np.radians(5.0))
+        assert all(terrain.assess(*q) is None for q in swept)
+        assert min(np.hypot(q[0] + 1.5, q[1]) for q in swept) > 0.9  # the rock stays aside
+        # ... and the true scene agrees: the way back does not touch the rock.
+        assert not sim.body.drive(C, way).collided
     finally:
         sim.close()
 
