@@ -326,10 +326,8 @@ PLANNERS: dict[str, type[Planner]] = {"beam": BeamPlanner, "greedy": GreedyPlann
 
 
 def planner_name(cfg: MissionConfig) -> str:
-    """The planner a mission runs: ``auto`` is the beam for the flyer, greedy for the rover."""
-    if cfg.planner.name == "auto":
-        return "beam" if cfg.platform == "flyer" else "greedy"
-    return cfg.planner.name
+    """The planner a mission runs: ``auto`` is the beam on either platform."""
+    return "beam" if cfg.planner.name == "auto" else cfg.planner.name
 
 
 def make_planner(cfg: MissionConfig) -> Planner:

@@ -298,8 +298,8 @@ class PlannerConfig:
 
     name: str = "auto"
     """Planner: beam (the paper's long-horizon search, MAGICIAN-style), greedy (the best next
-    view only), or auto: beam for the flyer, greedy for the rover (on the rover, the beam's
-    straight segments over known ground trap it: see the README)."""
+    view only), or auto: the beam on either platform (on the rover since issue 26: see the
+    README's *Why auto gives the rover the beam*)."""
     n_candidates: int = 32
     """Candidate poses sampled each step within the motion budget (the beam's first level)."""
     beam_width: int = 3
