@@ -313,8 +313,7 @@ class BeamPlanner(Planner):
         # candidates not yet tried (those with no straight way there among them) go to OMPL
         # as the greedy planner sends its own, so the beam never stays where greedy would
         # move (crater/d, seed 1: the beam stayed 99 of 100 steps, greedy drove 158 m).
-        tried_ids = {id(t.states[1]) for t in order[: pc.max_attempts]}
-        rest = [t.states[1] for t in order if id(t.states[1]) not in tried_ids] + blocked
+        rest = [t.states[1] for t in order[pc.max_attempts:]] + blocked
         rejected = [g for g in rejected if not any(g is b for b in blocked)]  # (tried again)
         found = best_feasible(cfg, step, model, field, rest, rejected, seed_base=20_000,
                               refuse=False)

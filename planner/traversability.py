@@ -500,16 +500,25 @@ class TerrainMap:
         ``LEAVE_M`` of it may show the same hazard (the rover is leaving it), never another,
         and never unknown ground."""
         poses = densify_se2(states, ACE_SPACING_M, ACE_TURN_RAD)
-        here = self.assess(*poses[0]) if poses else None
-        x0, y0 = poses[0][:2]
+        if not poses:
+            return None
+        here = self.assess(*poses[0])
         for pose in poses[1:]:
-            hazard = self.assess(*pose)
-            if hazard is None or (hazard == here and hazard != UNKNOWN
-                                  and math.hypot(pose[0] - x0, pose[1] - y0) <= LEAVE_M):
-                continue
-            self.refused[hazard] += 1
-            return hazard
+            hazard = self._blocking(pose, poses[0], here)
+            if hazard is not None:
+                self.refused[hazard] += 1
+                return hazard
         return None
+
+    def _blocking(self, pose: tuple, start: tuple, start_hazard: str | None) -> str | None:
+        """ACE's hazard at ``pose`` on a motion from ``start`` (whose own hazard is
+        ``start_hazard``), or None where it passes or where it is leaving the start: within
+        ``LEAVE_M`` of it, showing the start's own hazard, never unknown ground."""
+        hazard = self.assess(*pose)
+        if (hazard is not None and hazard == start_hazard and hazard != UNKNOWN
+                and math.hypot(pose[0] - start[0], pose[1] - start[1]) <= LEAVE_M):
+            return None
+        return hazard
 
     def dither_spots(self) -> np.ndarray:
         """(K, 2) where the rover stood at the steps of the last ``dither_memory`` that ended
@@ -534,11 +543,6 @@ class TerrainMap:
         way: list[tuple[float, float, float]] = []
         last, length = here, 0.0
         start_hazard = self.assess(*here)
-
-        def leaving(s: tuple) -> bool:  # ACE passes, or it is leaving the start (as admit)
-            hazard = self.assess(*s)
-            return hazard is None or (hazard == start_hazard and hazard != UNKNOWN
-                                      and math.hypot(s[0] - here[0], s[1] - here[1]) <= LEAVE_M)
         back: list[tuple[float, float, float]] = []
         if steps and self.trail:
             first = self.trail_steps[-1] - steps  # back to where it stood that step
@@ -556,7 +560,8 @@ class TerrainMap:
                 p = (last[0] + f * (p[0] - last[0]), last[1] + f * (p[1] - last[1]), p[2])
                 d = f * d
             seg = densify_se2([last, p], ACE_SPACING_M, ACE_TURN_RAD)[1:]
-            if any(not leaving(s) or (extra_ok is not None and not extra_ok(s)) for s in seg):
+            if any(self._blocking(s, here, start_hazard) is not None
+                   or (extra_ok is not None and not extra_ok(s)) for s in seg):
                 break
             way.append(p)
             last, length = p, length + d
