@@ -48,7 +48,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from rovergate.config import MissionConfig
-from rovergate.geometry import HAZCAMS, densify_se2, hazcam_from_base
+from rovergate.geometry import HAZCAMS, densify_se2, hazcam_from_base, rot_z
 from rovergate.types import CameraIntrinsics, ExecutionReport, PlanPath, TraversabilityGrid
 
 UNKNOWN, BELLY, WHEEL_DROP, TILT = "unknown", "belly", "wheel-drop", "tilt"
@@ -248,18 +248,13 @@ class TerrainMap:
                 del self.trail[k:], self.trail_steps[k:]
                 returned = True
                 break
-        if not returned:
-            for q in way:
-                self.trail.append((float(q[0]), float(q[1]), float(q[2])))
-                self.trail_steps.append(n)
+        for q in () if returned else way:  # (level, at the height the path gave it)
+            self.trail.append((float(q[0]), float(q[1]), float(q[2])))
+            self.trail_steps.append(n)
+            self._stand(rot_z(q[2]), np.array([q[0], q[1], q[3] if len(q) > 3 else p[2]]))
         self.trail.append((float(p[0]), float(p[1]), yaw))
         self.trail_steps.append(n)
         self.visited.append((float(p[0]), float(p[1])))
-        if not returned:
-            for q in way:  # (level, at the height the path gave it)
-                c, sn = math.cos(q[2]), math.sin(q[2])
-                self._stand(np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]]),
-                            np.array([q[0], q[1], q[3] if len(q) > 3 else p[2]]))
         self._stand(R, p)
 
     def _stand(self, R: np.ndarray, p: np.ndarray) -> None:

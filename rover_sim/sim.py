@@ -28,6 +28,7 @@ from rovergate.geometry import (
     check_platform,
     hazcam_from_base,
     voxel_first_points,
+    wrap_angle,
 )
 from rovergate.types import ExecutionReport, PlanPath, Pose, SensorFrame
 
@@ -108,8 +109,7 @@ class RoverSim:
         if self.flying:
             return
         moved = (np.hypot(self.state[0] - before[0], self.state[1] - before[1]) >= HOLD_M
-                 or abs(np.degrees(np.angle(np.exp(1j * (self.state[-1] - before[-1])))))
-                 >= HOLD_DEG)
+                 or abs(np.degrees(wrap_angle(self.state[-1] - before[-1]))) >= HOLD_DEG)
         self._held = 0 if moved else self._held + 1
 
     def render_hazcams(self, T_base: np.ndarray, step: int) -> dict[str, np.ndarray]:
