@@ -237,7 +237,7 @@ def main(cfg: ReplayConfig) -> int:
         if cfg.ros2:
             from ecosystem.ros2 import Ros2Bridge
             taps.taps.append(Ros2Bridge(cfg.ros2_router, cfg.ros2_domain,
-                                        _bag_namespace(cfg)))
+                                        _bag_namespace(cfg), hold=True))
         replay(cfg, taps)
     finally:
         taps.close()

@@ -119,7 +119,11 @@ class Ros2Bridge:
     """A :class:`ecosystem.taps.Tap` that publishes the mission into the ROS 2 graph."""
 
     def __init__(self, router: str = DEFAULT_ROUTER, domain: int = 0,
-                 namespace: str = "rover", timeout_s: float = 5.0) -> None:
+                 namespace: str = "rover", timeout_s: float = 5.0,
+                 hold: bool = False) -> None:
+        """``hold``: :meth:`put` waits for room in the queue instead of dropping (a replay,
+        whose pace is its own: every message of the bag reaches ROS 2, as ``ros2 bag play``
+        delivers them); a live mission never waits on the router."""
         import zenoh
         if not 0 <= domain <= 232:
             raise ConfigError(f"--ros2-domain must be a ROS domain id (0 to 232), got {domain}")
@@ -147,6 +151,7 @@ class Ros2Bridge:
         self._sequence: dict[str, int] = {}
         self._queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(QUEUE_MESSAGES)
         self.dropped = 0
+        self._hold = hold
         for entity, topic in enumerate(tapped_topics(), start=1):
             name, msgtype = "/" + keys.key(topic), TOPICS[topic].msgtype
             token = publisher_token(domain, self.zid, 0, entity, self.node_namespace,
@@ -165,9 +170,16 @@ class Ros2Bridge:
 
     def put(self, topic: str, payload: bytes, time_ns: int) -> None:
         """Hand a message to the bridge's thread; never blocks the mission (a router that
-        does not keep up costs ROS 2 messages, counted, never the mission a step)."""
+        does not keep up costs ROS 2 messages, counted, never the mission a step), but
+        waits for room with ``hold`` (a replay)."""
         if topic not in self._publishers:
             return
+        while self._hold and self._thread.is_alive():  # (a bridge that stopped drops)
+            try:
+                self._queue.put((topic, payload), timeout=1.0)
+                return
+            except queue.Full:
+                continue
         try:
             self._queue.put_nowait((topic, payload))
         except queue.Full:
