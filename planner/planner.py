@@ -160,7 +160,7 @@ def best_feasible(cfg: MissionConfig, step: int, model: MotionModel, field: Gain
                      dtype=np.int64)
     here = np.array(model.current[:3 if cfg.platform == "flyer" else 2])
     travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
-    order = np.lexsort((travel, -gains, model.stale(candidates)))
+    order = np.lexsort((travel, -gains, model.avoid(candidates)))
     attempts = len(order) if model.stale([model.current])[0] else pc.max_attempts
     for k, i in enumerate(order[:attempts]):
         goal = candidates[i]
@@ -296,8 +296,8 @@ class BeamPlanner(Planner):
             for c in children:
                 best_of_first[c.first] = max(best_of_first[c.first], c.gain)
             beam = sorted(children, key=lambda t: (-t.gain, t.travel_m))[: pc.beam_width]
-        stale = model.stale([t.states[1] for t in firsts])  # indexed by t.first
-        order = sorted(firsts, key=lambda t: (bool(stale[t.first]), -best_of_first[t.first],
+        avoid = model.avoid([t.states[1] for t in firsts])  # indexed by t.first
+        order = sorted(firsts, key=lambda t: (int(avoid[t.first]), -best_of_first[t.first],
                                               t.travel_m))
         rejected = list(blocked)  # the first motions found blocked, then OMPL's failures
         for tried, t in enumerate(order[: pc.max_attempts]):

@@ -100,6 +100,17 @@ class MotionModel(abc.ABC):
         none on the flyer)."""
         return np.zeros(len(states), dtype=bool)
 
+    def avoid(self, states: list[State]) -> np.ndarray:
+        """(N,) int: the tier each candidate state is tried in, after the best of the lower
+        tiers: 2 near where the platform dithered lately (:meth:`stale`), 1 where the rover
+        stood at one of the last ``TraverseConfig.revisit_steps`` steps, else 0."""
+        return 2 * self.stale(states).astype(np.int64) + self.revisit(states)
+
+    def revisit(self, states: list[State]) -> np.ndarray:
+        """(N,) int: 1 for candidate states near where the platform stood lately (the
+        rover's; none on the flyer), else 0."""
+        return np.zeros(len(states), dtype=np.int64)
+
     def backout(self, start: State) -> list[State]:
         """The rover's way back along where it came from (checked by its traversability
         layer only), from ``start``; empty where there is none (and on the flyer)."""
@@ -300,6 +311,20 @@ class RoverModel(MotionModel):
         xy = np.array([s[:2] for s in states], dtype=np.float64)
         d = np.linalg.norm(xy[:, None, :] - spots[None], axis=2).min(axis=1)
         return d < self.cfg.traverse.dither_radius_m
+
+    def revisit(self, states: list[State]) -> np.ndarray:
+        t = self.cfg.traverse
+        out = np.zeros(len(states), dtype=np.int64)
+        if self.terrain is None or not t.revisit_steps or not len(states):
+            return out
+        spots = np.asarray(self.terrain.visited[-1 - t.revisit_steps:-1],
+                           dtype=np.float64).reshape(-1, 2)
+        if not len(spots):
+            return out
+        xy = np.array([s[:2] for s in states], dtype=np.float64)
+        d = np.linalg.norm(xy[:, None, :] - spots[None], axis=2).min(axis=1)
+        out[d < t.revisit_m] = 1
+        return out
 
     def backout(self, start: State) -> list[State]:
         if self.terrain is None:

@@ -184,6 +184,12 @@ class TraverseConfig:
     are tried after all the others."""
     dither_memory: int = 30
     """How many steps a dither's spot is remembered."""
+    revisit_steps: int = 10
+    """Candidates within ``revisit_m`` of where the rover stood at one of this many steps
+    before the current one are tried after the others (before those near a dither's spot):
+    greedy view selection otherwise drives out and back to the same spot (0: off)."""
+    revisit_m: float = 1.0
+    """See ``revisit_steps``."""
 
 
 @dataclass
