@@ -325,8 +325,12 @@ PLANNERS: dict[str, type[Planner]] = {"beam": BeamPlanner, "greedy": GreedyPlann
 
 
 def planner_name(cfg: MissionConfig) -> str:
-    """The planner a mission runs: ``auto`` is the beam on either platform."""
-    return "beam" if cfg.planner.name == "auto" else cfg.planner.name
+    """The planner a mission runs: ``auto`` is the beam on the flyer and the greedy planner on
+    the rover (which the beam does not beat there: README, *Why `auto` gives the rover the
+    greedy planner*)."""
+    if cfg.planner.name == "auto":
+        return "beam" if cfg.platform == "flyer" else "greedy"
+    return cfg.planner.name
 
 
 def make_planner(cfg: MissionConfig) -> Planner:

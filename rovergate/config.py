@@ -304,8 +304,8 @@ class PlannerConfig:
 
     name: str = "auto"
     """Planner: beam (the paper's long-horizon search, MAGICIAN-style), greedy (the best next
-    view only), or auto: the beam on either platform (on the rover since issue 26: see the
-    README's *Why auto gives the rover the beam*)."""
+    view only), or auto: the beam on the flyer, greedy on the rover (where the beam does not
+    beat it: see the README's *Why `auto` gives the rover the greedy planner*)."""
     n_candidates: int = 32
     """Candidate poses sampled each step within the motion budget (the beam's first level)."""
     beam_width: int = 3
