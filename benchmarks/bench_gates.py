@@ -28,8 +28,8 @@ import tracemalloc
 from pathlib import Path
 
 from gate.gate import Gate
-from mission.loop import run_mission
-from mission.transport import InProcessTransport
+from mission.runtime.loop import run_mission
+from mission.runtime.transport import InProcessTransport
 from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig, SensingConfig
 from rovergate.runtime import tune_allocator

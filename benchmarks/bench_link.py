@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mission.downlink import DownlinkQueue
+from mission.link.downlink import DownlinkQueue
 from rovergate.messages import encode_item
 from rovergate.types import SURFACE_DTYPE, MissionStatus, Pose
 

@@ -49,7 +49,7 @@ from mapper.grid import GridSpec, OccupancyGrid  # noqa: E402
 from mapper.integrate import backproject  # noqa: E402
 from mapper.mapper import Mapper  # noqa: E402
 from mapper.model import crop  # noqa: E402
-from mission.loop import run_in_process  # noqa: E402
+from mission.runtime.loop import run_in_process  # noqa: E402
 from rover_sim.catalog import resolve_scene  # noqa: E402
 from rover_sim.sim import RoverSim  # noqa: E402
 from rovergate.config import MissionConfig  # noqa: E402
@@ -102,7 +102,8 @@ SLOW_WINDOWS = 8
 
 def engines(windows: list[np.ndarray], repeats: int) -> None:
     """The model's pass in every engine and precision on the same windows, in turn."""
-    from mapper.model import load_checkpoint, to_float16
+    from mapper.model import load_checkpoint
+    from mapper.predictor import to_float16
     ckpt = load_checkpoint()
     runs, refused = {}, {}
     for name in ENGINES:

@@ -16,7 +16,7 @@ import statistics
 
 import torch
 
-from mission.loop import run_in_process
+from mission.runtime.loop import run_in_process
 from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig
 from rovergate.runtime import tune_allocator

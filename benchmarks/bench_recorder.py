@@ -20,7 +20,7 @@ import statistics
 import tempfile
 from pathlib import Path
 
-from mission.loop import run_in_process, run_processes
+from mission.runtime.loop import run_in_process, run_processes
 from rover_sim.catalog import resolve_scene
 from rovergate.config import MissionConfig
 from rovergate.runtime import tune_allocator

@@ -47,7 +47,7 @@ def one_run(job: tuple[str, str, str, str, int, int]) -> dict:
     """One mission in this (worker) process: its figures."""
     setting, scene, start, condition, seed, steps = job
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from mission.loop import run_in_process
+    from mission.runtime.loop import run_in_process
     from rover_sim.catalog import resolve_scene
     from rovergate.config import MissionConfig
     logging.basicConfig(level=logging.ERROR)

@@ -41,8 +41,8 @@ def record(scene: str, start: str, condition: str, seed: int, steps: int, plan_s
 
     import mapper.mapper
     import planner.planner
-    from mission.loop import run_in_process
-    from mission.study import RunSpec, StudyConfig, mission_config
+    from mission.runtime.loop import run_in_process
+    from mission.study.spec import RunSpec, StudyConfig, mission_config
     from rover_sim.catalog import resolve_scene
     from rovergate.runtime import tune_allocator
 

@@ -1,6 +1,6 @@
 """Benchmark: a study's runs, timed as the study runs them, against an older tree if given one.
 
-Runs short in-process missions exactly as a study worker does (``mission.study``'s mission
+Runs short in-process missions exactly as a study worker does (``mission.study.runner``'s mission
 config, the flyer, one torch thread, the tuned allocator), two at a time as the study's two
 workers keep both cores busy, each in a fresh process. Prints, per condition, the median run
 wall time, the median step and the median of every stage per step.
@@ -37,13 +37,13 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def run_one(scene: str, start: str, condition: str, seed: int, steps: int) -> dict:
-    """One mission as a study worker runs it (mission/study.py: ``_init_worker`` and
-    ``_run_one``), in this process; its timings and coverage. Uses only what every tree
+    """One mission as a study worker runs it (mission/study/worker.py: ``init_worker`` and
+    ``run_one``), in this process; its timings and coverage. Uses only what every tree
     compared has."""
     import torch
 
-    from mission.loop import run_in_process
-    from mission.study import RunSpec, StudyConfig, mission_config
+    from mission.runtime.loop import run_in_process
+    from mission.study.spec import RunSpec, StudyConfig, mission_config
     from rover_sim.catalog import resolve_scene
     from rovergate.runtime import tune_allocator
 

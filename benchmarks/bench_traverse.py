@@ -34,7 +34,7 @@ def main() -> None:
     args = ap.parse_args()
     tune_allocator()
     logging.basicConfig(level=logging.ERROR)
-    from mission.loop import run_in_process
+    from mission.runtime.loop import run_in_process
     from planner.node import PlannerNode
     from planner.traversability import TerrainMap
     from rover_sim.catalog import resolve_scene

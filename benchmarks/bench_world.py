@@ -20,7 +20,7 @@ import numpy as np
 import zenoh
 
 from mapper.mapper import Mapper
-from mission.coverage import CoverageEvaluator
+from mission.scoring.coverage import CoverageEvaluator
 from rover_sim.catalog import SCENES, resolve_scene
 from rover_sim.sim import RoverSim
 from rovergate.config import MissionConfig, SceneConfig, SensingConfig

@@ -26,7 +26,7 @@ from bench_gates import record  # the same directory
 
 from gate.filter import ObservationGate, RayGate
 from gate.views import pixels
-from mission.evaluation import StepEvaluator
+from mission.scoring.evaluation import StepEvaluator
 from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.config import MissionConfig, SensingConfig
 from rovergate.geometry import in_region

@@ -1,5 +1,5 @@
 """Where a mission meets the ROS ecosystem's own tools, fed by the mission's messages as they
-travel (:mod:`ecosystem.taps`); nothing flows back from them into the mission:
+travel (:mod:`rovergate.taps`); nothing flows back from them into the mission:
 
 - :mod:`ecosystem.recorder`: the flight recorder, a rosbag2 bag with MCAP storage, written by
   a process of its own (:mod:`ecosystem.bag_writer`);

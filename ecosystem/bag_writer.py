@@ -5,7 +5,7 @@ recorder's thread or in a process of its own.
 :class:`ecosystem.recorder.FlightRecorder`, starts it for an in-process mission) reads frames
 from its standard input,
 each a little-endian header (uint32 index of the topic in
-:func:`ecosystem.taps.tapped_topics`, uint64 log time in ns, uint64 payload length) and the
+:func:`rovergate.taps.tapped_topics`, uint64 log time in ns, uint64 payload length) and the
 payload, writes each as a message of a rosbag2 bag with MCAP storage, and when its input ends
 closes the bag and prints what it wrote as one JSON line on standard output.
 
@@ -37,13 +37,13 @@ def _read_exact(stream, n: int) -> bytes | None:
 
 
 def connections(namespace: str) -> list[dict[str, str]]:
-    """The bag's connections, one per tapped topic in :func:`ecosystem.taps.tapped_topics`'s
+    """The bag's connections, one per tapped topic in :func:`rovergate.taps.tapped_topics`'s
     order: its graph name, ROS 2 topic, type, ``ros2msg`` definition and RIHS01 hash (the
     writer process is given them, so that it never builds the type store)."""
-    from ecosystem.taps import tapped_topics
     from rovergate.graph import TOPICS
     from rovergate.keys import Keys
     from rovergate.messages import TYPESTORE
+    from rovergate.taps import tapped_topics
     keys = Keys(namespace)
     out = []
     for t in tapped_topics():

@@ -27,18 +27,23 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-from ecosystem.taps import tapped_topics
 from rovergate.config import HazcamConfig
 from rovergate.graph import TOPICS
 from rovergate.keys import Keys
 from rovergate.messages import TYPESTORE
+from rovergate.taps import tapped_topics
 
-if TYPE_CHECKING:
-    from rover_sim.scene import Scene
+
+class Scene(Protocol):
+    """What the view needs of a scene (:class:`rover_sim.scene.Scene` is one; the mission
+    hands it in, so this package imports no module package)."""
+
+    visual_meshes: list
+    """(trimesh.Trimesh, RGBA) pairs: the scene's true geometry in its own colours."""
 
 log = logging.getLogger("rovergate.viz")
 
@@ -61,7 +66,7 @@ def scene_topic(namespace: str) -> str:
 
 
 class LiveView:
-    """A :class:`ecosystem.taps.Tap` that serves the mission to Foxglove."""
+    """A :class:`rovergate.taps.Tap` that serves the mission to Foxglove."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
                  namespace: str = "rover", scene: Scene | None = None,

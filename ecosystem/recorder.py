@@ -37,8 +37,8 @@ from pathlib import Path
 from typing import Literal
 
 from ecosystem.bag_writer import HEADER, BagFile, connections
-from ecosystem.taps import Payload, tapped_topics
 from rovergate.keys import Keys
+from rovergate.taps import Payload, tapped_topics
 
 log = logging.getLogger("rovergate.recorder")
 
@@ -98,7 +98,7 @@ class RecordStats:
 
 
 class FlightRecorder:
-    """A :class:`ecosystem.taps.Tap` that records every message into a rosbag2 MCAP bag.
+    """A :class:`rovergate.taps.Tap` that records every message into a rosbag2 MCAP bag.
 
     The transport's side only queues each payload; a thread of the recorder takes it from
     there. With ``writer="thread"`` that thread writes the bag itself (the process set's

@@ -18,8 +18,10 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import tyro
 
@@ -104,7 +106,7 @@ def key_of(topic: str, namespace: str = "") -> str:
 
 
 def replay(cfg: ReplayConfig, taps=None) -> ReplayStats:
-    """Publish the bag as configured; ``taps`` (:class:`ecosystem.taps.Taps`: the live view)
+    """Publish the bag as configured; ``taps`` (:class:`rovergate.taps.Taps`: the live view)
     get every message too, under its graph topic name where it has one."""
     import zenoh
 
@@ -200,15 +202,16 @@ def _await_subscriber(publishers, viewers, timeout_s: float, stop) -> None:
             return
 
 
-def live_view(cfg: ReplayConfig):
+def live_view(cfg: ReplayConfig, load_scene: Callable[[Any], Any] | None = None):
     """The live view of a replay (``--viz``), showing the recorded mission's scene when its
-    ``config.json`` lies beside the bag."""
+    ``config.json`` lies beside the bag and the caller gave ``load_scene`` (a
+    ``SceneConfig`` -> scene function: the composition root gives
+    :func:`rover_sim.catalog.load_scene`)."""
     from ecosystem.live_view import LiveView
     from rovergate.config import load_config
     scene = None
     saved = Path(cfg.bag).resolve().parent / "config.json"
-    if saved.is_file():
-        from rover_sim.catalog import load_scene
+    if saved.is_file() and load_scene is not None:
         try:
             mission = load_config(saved)
             scene = load_scene(mission.scene)
@@ -228,11 +231,12 @@ def _bag_namespace(cfg: ReplayConfig) -> str:
         reader.close()
 
 
-def main(cfg: ReplayConfig) -> int:
-    from ecosystem.taps import Taps
+def main(cfg: ReplayConfig, load_scene: Callable[[Any], Any] | None = None) -> int:
+    """Replay the bag of ``cfg``; ``load_scene`` as in :func:`live_view`."""
     from rovergate.logs import init_logging
+    from rovergate.taps import Taps
     init_logging("replay")
-    taps = Taps([live_view(cfg)] if cfg.viz else [])
+    taps = Taps([live_view(cfg, load_scene)] if cfg.viz else [])
     try:
         if cfg.ros2:
             from ecosystem.ros2 import Ros2Bridge

@@ -41,11 +41,11 @@ import struct
 import threading
 import time
 
-from ecosystem.taps import tapped_topics
 from rovergate.errors import ConfigError
 from rovergate.graph import TOPICS
 from rovergate.keys import Keys
 from rovergate.messages import TYPESTORE
+from rovergate.taps import tapped_topics
 
 log = logging.getLogger("rovergate.ros2")
 
@@ -116,7 +116,7 @@ def gid_of(token: str) -> bytes:
 
 
 class Ros2Bridge:
-    """A :class:`ecosystem.taps.Tap` that publishes the mission into the ROS 2 graph."""
+    """A :class:`rovergate.taps.Tap` that publishes the mission into the ROS 2 graph."""
 
     def __init__(self, router: str = DEFAULT_ROUTER, domain: int = 0,
                  namespace: str = "rover", timeout_s: float = 5.0,

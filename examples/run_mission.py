@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rovergate import Mission
+from mission import Mission
 
 HERE = Path(__file__).resolve().parent
 

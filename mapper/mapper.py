@@ -22,7 +22,8 @@ from rovergate.types import (
 )
 
 if TYPE_CHECKING:  # torch is imported only by a mapper that runs the model
-    from mapper.model import Checkpoint, OccupancyPredictor
+    from mapper.model import Checkpoint
+    from mapper.predictor import OccupancyPredictor
 
 PREDICTION_MODES = ("auto", "on", "off")
 
@@ -78,7 +79,7 @@ class Mapper:
             if bounds_m is None or not any(bounds_m):
                 raise ValueError("the learned prediction needs the box of interest")
             self.grid = OccupancyGrid(GridSpec.around(bounds_m, checkpoint.window.voxel_m))
-            from mapper.model import OccupancyPredictor
+            from mapper.predictor import OccupancyPredictor
             self.predictor = OccupancyPredictor(checkpoint, self.grid, precision, engine)
 
     @classmethod

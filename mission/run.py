@@ -15,11 +15,11 @@ from typing import IO
 from tqdm import tqdm
 
 from mapper.mapper import mission_checkpoint
-from mission.checkpoint import LoopState
-from mission.checkpoint import load as load_checkpoint
-from mission.checkpoint import remove as remove_checkpoint
-from mission.loop import run_in_process, run_processes
-from mission.report import write_report
+from mission.runtime.checkpoint import LoopState
+from mission.runtime.checkpoint import load as load_checkpoint
+from mission.runtime.checkpoint import remove as remove_checkpoint
+from mission.runtime.loop import run_in_process, run_processes
+from mission.scoring.report import write_report
 from planner.planner import PLANNERS, planner_name
 from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.conditions import get_condition
@@ -53,8 +53,8 @@ def check_runnable(cfg: MissionConfig) -> None:
         raise ConfigError("--planner.command runs a planner program, which needs the "
                           "process set; leave out --in-process")
     if cfg.contact.enabled and not cfg.in_process:
-        from mission.bridge import check_ground_endpoints, ground_tls
-        from mission.contact import ContactPlan, ContactPlanError
+        from mission.link.bridge import check_ground_endpoints, ground_tls
+        from mission.link.contact import ContactPlan, ContactPlanError
         tls = ground_tls(cfg.contact)
         if tls is not None:
             tls.check()

@@ -22,7 +22,7 @@ station at a given step or contact window through the mission's real uplink::
 ``rovergate run mission.toml [flags]`` runs it: flags given after the file override it. With
 a timeline, the run makes fresh credentials for the link in ``OUT/credentials`` (unless the
 file's ``[contact]`` names the rover's and its ``[ground]`` table the station's), so that the
-uplink is mutual TLS, starts a ground station (:class:`mission.ground.GroundStation`) on the
+uplink is mutual TLS, starts a ground station (:class:`mission.link.ground.GroundStation`) on the
 mission's ground endpoint, and plays the timeline: a command goes up in the window it is
 sent in (or the next), reaches the rover one light time later, runs at the next step
 boundary and is acknowledged on the downlink. The station records everything under
@@ -36,7 +36,7 @@ the first status of that window.
 
 In Python::
 
-    from rovergate import Mission
+    from mission import Mission
     mission = Mission.load("examples/mission.toml", steps=12, out="runs/script")
     mission.at_step(3, "set planner.n_candidates=24")
     result = mission.run()
@@ -128,7 +128,7 @@ def _entry(e: Any, source: str, i: int) -> TimelineEntry:
     if not isinstance(e.get("command"), str):
         raise ConfigError(f"{where}: needs `command`, a ground command as `rovergate ground` "
                           "takes it (e.g. \"set gate.k=3\")")
-    from mission.ground import parse_command
+    from mission.link.ground import parse_command
     try:
         parse_command(e["command"], 0)
     except ValueError as exc:
@@ -331,7 +331,7 @@ def _credentials(cfg: MissionConfig, script: MissionScript, out: Path
             raise ConfigError(f"{script.source}: [contact] names the rover's credentials; name "
                               "the station's too: [ground] credentials = \"DIR/station\"")
         return cfg, script.station_credentials
-    from mission.credentials import CredentialsConfig, create
+    from mission.link.credentials import CredentialsConfig, create
     root = out / "credentials"
     made = {name: root / name for name in ("ca", "rover", "station")}
     if all(d.is_dir() for d in made.values()):
@@ -346,7 +346,7 @@ def _credentials(cfg: MissionConfig, script: MissionScript, out: Path
 
 
 def _check_timeline(cfg: MissionConfig, script: MissionScript) -> None:
-    from mission.contact import ContactPlan
+    from mission.link.contact import ContactPlan
     windows = ContactPlan(cfg.contact).windows_between(0, cfg.steps)
     for e in script.timeline:
         if e.step is not None and e.step > cfg.steps:
@@ -363,7 +363,7 @@ class TimelinePlayer:
 
     def __init__(self, cfg: MissionConfig, timeline: list[TimelineEntry],
                  credentials: Path, out: Path) -> None:
-        from mission.contact import ContactPlan
+        from mission.link.contact import ContactPlan
         self.cfg = cfg
         self.credentials = credentials
         self.out = out
@@ -380,7 +380,7 @@ class TimelinePlayer:
 
     def start(self) -> None:
         """Called once the mission's ground endpoint is up (its ground.json written)."""
-        from mission.ground import GroundConfig, GroundStation, resolve_link
+        from mission.link.ground import GroundConfig, GroundStation, resolve_link
         gcfg = resolve_link(GroundConfig(mission=self.out, credentials=self.credentials,
                                          out=self.out / "ground", stdin=False))
         self.station = GroundStation(gcfg, logging.getLogger("rovergate.ground"))

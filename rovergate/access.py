@@ -2,7 +2,7 @@
 
 **The rover network** is the mission manager's session and the module processes. The modules
 join it as Zenoh clients on a Unix socket in a directory only the mission's user can open
-(:mod:`mission.process_set`); no module listens on anything. The mission manager's session
+(:mod:`mission.runtime.process_set`); no module listens on anything. The mission manager's session
 is the network's one listener that another machine can reach (``--listen``), and its access
 control gives every link over ``unixsock-stream`` full rights and every other link (TCP,
 TLS, QUIC, WebSocket, ...) read-only rights (:func:`rover_network`):
@@ -21,7 +21,7 @@ Zenoh matches a query's key expression against the rules as a whole: a deny on
 ``rover/truth/**`` stops a query for ``rover/truth/x`` but not one for ``rover/**``, whose
 truth replies are therefore denied on their way out instead (egress ``reply``).
 
-**The ground network** is the bridge's session (:mod:`mission.bridge`) and the ground
+**The ground network** is the bridge's session (:mod:`mission.link.bridge`) and the ground
 station. The station may put only on the uplink and the acknowledgement keys, subscribe only
 to the downlink, and declare only its own liveliness token (:func:`ground_network`); with
 credentials, only a link whose certificate names the station has even that.
@@ -83,7 +83,7 @@ def ground_network(namespace: str, station_names: tuple[str, ...] = ()) -> dict[
     """The ``access_control`` section of the bridge's session. ``station_names``: the
     certificate common names of the stations (mutual TLS); empty: any link (only for a link
     without credentials, which listens on loopback only:
-    :func:`mission.bridge.check_ground_endpoints` refuses credentials without names)."""
+    :func:`mission.link.bridge.check_ground_endpoints` refuses credentials without names)."""
     keys = Keys(namespace)
     station: dict[str, Any] = {"id": "station"}
     if station_names:

@@ -379,7 +379,7 @@ class EvalConfig:
 @dataclass
 class ContactConfig:
     """Communication with the ground station: contact windows, light time, downlink rate
-    (the process set's mission manager; see mission/contact.py)."""
+    (the process set's mission manager; see mission/link/contact.py)."""
 
     enabled: bool = True
     """Simulate the link and open the ground endpoint (process set only)."""
@@ -402,7 +402,7 @@ class ContactConfig:
     """Downlink rate, kilobits per simulated second."""
     queue_max_mb: float = 64.0
     """Bound on the onboard store-and-forward queue. Over it, the oldest unsent status and
-    pose samples are dropped first; events are never dropped (see mission/downlink.py)."""
+    pose samples are dropped first; events are never dropped (see mission/link/downlink.py)."""
     map_snapshot_points: int = 20_000
     """Most points in one downlinked map snapshot (the observed surface, thinned evenly)."""
     ground_listen: tuple[str, ...] = ()
@@ -451,7 +451,7 @@ class MissionConfig:
     resume: bool = False
     """Carry on the process-set mission in --out whose mission manager was killed (or that
     failed), from its last step boundary, with the configuration it had then
-    (OUT/checkpoint.pickle, OUT/journal.sqlite; see mission/checkpoint.py). Give only --out
+    (OUT/checkpoint.pickle, OUT/journal.sqlite; see mission/runtime/checkpoint.py). Give only --out
     (and --no-progress)."""
     ready_timeout_s: float = 120.0
     """How long to wait for every module's liveliness token."""

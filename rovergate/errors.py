@@ -1,10 +1,14 @@
-"""The errors library code raises. Only the command line turns them into one-line messages
-and exit codes (``mission/cli.py``); a program that embeds rovergate catches them by type.
+"""The errors library code raises. Only a command's entry point turns them into one-line
+messages and exit codes (:func:`exit_code`, called by ``mission/cli.py`` and by every module
+process); a program that embeds rovergate catches them by type.
 
 Every message names the thing, says why it is wrong and how to fix it, on one line.
 """
 
 from __future__ import annotations
+
+import sys
+from collections.abc import Callable
 
 
 class RovergateError(Exception):
@@ -37,3 +41,19 @@ class MissionFailed(RovergateError):
 class ReconfigurationFailed(RovergateError):
     """Modules restarted with a new configuration did not come up; the previous configuration
     runs on (the mission goes on)."""
+
+
+def exit_code(call: Callable[[], int]) -> int:
+    """Run a command's ``call`` and give its exit code: the only place a typed error becomes one
+    line on stderr and a code: 2 for a setting that cannot be used (:class:`ConfigError`), 1 for
+    a mission that failed (any other :class:`RovergateError`), 130 when interrupted."""
+    try:
+        return call()
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except RovergateError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130

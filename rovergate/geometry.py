@@ -1,5 +1,6 @@
-"""Geometry every module shares: rotations and quaternions, where the camera sits on each
-platform, and the voxel keys that S_t, the reference occupancy O* and the audit agree on.
+"""Geometry every module shares: where the camera sits on each platform, and the voxel keys
+that S_t, the reference occupancy O* and the audit agree on (rotations and quaternions are
+:mod:`rovergate.rotations`, re-exported here).
 
 Two platforms: ``rover`` (SE(2) on the terrain; the camera on a pan-tilt mast) and ``flyer``
 (a free camera; its body pose is the camera's, heading and pitch included).
@@ -7,32 +8,22 @@ Two platforms: ``rover`` (SE(2) on the terrain; the camera on a pan-tilt mast) a
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from rovergate.config import HazcamConfig, SensorConfig
 from rovergate.errors import UnknownNameError
-
-if TYPE_CHECKING:
-    from rovergate.types import CameraIntrinsics
+from rovergate.rotations import (  # noqa: F401 (re-exported: every caller's one module)
+    matrix_to_quat,
+    quat_to_matrix,
+    quat_to_yaw,
+    rot_x,
+    rot_y,
+    rot_z,
+    yaw_to_quat,
+)
+from rovergate.types import CameraIntrinsics
 
 _OFFSET = 1 << 20  # voxel indices are shifted into [0, 2^21) so they pack into one int64
-
-
-def rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-
-
-def rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
 
 
 #: Optical frame (x right, y down, z forward) expressed in a body frame (x fwd, y left, z up).
@@ -102,48 +93,6 @@ def densify_se2(poses: list[tuple[float, ...]], spacing_m: float,
             f = k / n
             out.append((x0 + f * (x1 - x0), y0 + f * (y1 - y0), wrap_angle(a0 + f * da)))
     return out
-
-
-def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
-    """(4,) unit quaternion (x, y, z, w) -> (3, 3) rotation matrix."""
-    x, y, z, w = (float(v) for v in q_xyzw)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation matrix -> (4,) unit quaternion (x, y, z, w) with w >= 0."""
-    m = np.asarray(R, dtype=np.float64)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = np.sqrt(tr + 1.0) * 2
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q, dtype=np.float64)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def yaw_to_quat(yaw: float) -> np.ndarray:
-    """Heading about map z -> (4,) quaternion (x, y, z, w)."""
-    return np.array([0.0, 0.0, np.sin(yaw / 2.0), np.cos(yaw / 2.0)])
-
-
-def quat_to_yaw(q_xyzw: np.ndarray) -> float:
-    """Heading about map z of a quaternion (x, y, z, w)."""
-    x, y, z, w = (float(v) for v in q_xyzw)
-    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
 
 
 def in_region(points: np.ndarray, bounds_m: tuple[float, ...]) -> np.ndarray:

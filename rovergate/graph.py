@@ -4,8 +4,8 @@ produces.
 This is where a reader learns every topic of the system. Everything else is derived from it:
 the keys (:class:`rovergate.keys.Keys`), each node's subscriptions and publishers
 (:class:`rovergate.node.ModuleNode`), the in-process transport's routing
-(:mod:`mission.transport`), the mission's inbox and journal (which topics it watches, keeps for
-every step, or keeps for the last few), which module reports each timing stage, what a
+(:mod:`mission.runtime.transport`), the mission's inbox and journal (which topics it watches,
+keeps for every step, or keeps for the last few), which module reports each timing stage, what a
 restarted module replays, and the README's topic table (a test checks it against
 :func:`topic_table`). Adding a topic is one entry in :data:`TOPICS` plus its codec in
 :mod:`rovergate.messages`; wiring it is one name in a module's ``inputs`` or ``outputs``.
@@ -145,7 +145,7 @@ class Module:
     """Queryables it may ask (the gate asks for truth in the oracle conditions only)."""
     reads: tuple[str, ...] = ()
     """The mission settings (top-level fields and sections of the config) it is built from:
-    a change of one of them in flight restarts it (:mod:`mission.operations`)."""
+    a change of one of them in flight restarts it (:mod:`mission.link.operations`)."""
     last_step_offset: int = 0
     """The last step it handles is ``steps + last_step_offset`` (the gate and the planner
     have nothing to do after the last pose)."""

@@ -4,8 +4,8 @@ A module's logic (``rover_sim/node.py``, ``mapper/node.py``, ``gate/node.py``,
 ``planner/node.py``) implements :class:`ModuleLogic`: given the inputs of one step, as declared
 for it in :mod:`rovergate.graph`, it returns the messages it publishes and the time each stage
 took. It never touches a transport. Two transports drive the same logic: direct calls in one
-process (:class:`mission.transport.InProcessTransport`), and Zenoh, one OS process per module
-(:class:`rovergate.node.ModuleNode`).
+process (:class:`mission.runtime.transport.InProcessTransport`), and Zenoh, one OS process per
+module (:class:`rovergate.node.ModuleNode`).
 
 Values are the plain data of :mod:`rovergate.types`: what :func:`rovergate.messages.encode`
 takes for a topic (``(step, array)`` for depth, camera info, poses and clouds; a dataclass with

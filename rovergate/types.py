@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rovergate.geometry import matrix_to_quat, quat_to_matrix, quat_to_yaw, yaw_to_quat
+from rovergate.rotations import matrix_to_quat, quat_to_matrix, quat_to_yaw, yaw_to_quat
 
 
 @dataclass
@@ -266,7 +266,7 @@ class StepTiming:
     dropped_total: int
 
 
-# --- the ground link (mission/bridge.py, mission/ground.py) ---------------------------------
+# --- the ground link (mission/link/bridge.py, mission/link/ground.py) ------------------------
 
 @dataclass
 class TelemetryFrame:

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from mission.journal import KEEP_ALL, KEEP_LAST
 from mission.run import check_runnable
-from mission.transport import InProcessTransport
+from mission.runtime.journal import KEEP_ALL, KEEP_LAST
+from mission.runtime.transport import InProcessTransport
 from rovergate import graph
 from rovergate.config import GateConfig, MissionConfig, PlannerConfig, SensorConfig
 from rovergate.errors import CheckpointError, ConfigError, UnknownNameError
@@ -43,7 +43,7 @@ def test_the_graph_is_consistent_and_everything_derives_from_it():
 
 
 def test_every_launched_module_has_its_logic():
-    from mission.modules import LOGIC, make_logic  # noqa: F401 (the table is the check)
+    from mission.runtime.modules import LOGIC, make_logic  # noqa: F401 (the table is the check)
     assert tuple(LOGIC) == graph.LAUNCHED
     import importlib
     for name, where in LOGIC.items():
@@ -69,8 +69,9 @@ def test_readme_topic_table_is_the_generated_one():
 
 def test_module_logic_loads_without_zenoh():
     code = ("import gate.gate, gate.node, mapper.mapper, mapper.node, planner.planner, "
-            "planner.node, rover_sim.sim, rover_sim.node, mission.coverage, mission.metrics, "
-            "mission.loop, mission.transport, mission.supervisor, rovergate.config, sys; "
+            "planner.node, rover_sim.sim, rover_sim.node, mission.scoring.coverage, "
+            "mission.scoring.metrics, mission.runtime.loop, mission.runtime.transport, "
+            "mission.runtime.supervisor, rovergate.config, sys; "
             "assert 'zenoh' not in sys.modules, 'zenoh was imported'")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        cwd=ROOT, timeout=120)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mission.coverage import CoverageEvaluator, auc
+from mission.scoring.coverage import CoverageEvaluator, auc
 
 
 def test_coverage_counts_samples_within_tau():

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from conftest import StatusWatcher, run_cli, wait_gone
 
-from mission.journal import Journal
+from mission.runtime.journal import Journal
 from rovergate.errors import ConfigError
 from rovergate.session import free_loopback_port
 
@@ -96,8 +96,8 @@ def test_a_killed_mission_manager_resumes_and_ends_as_if_nothing_happened(tmp_pa
     its authenticated link; its modules stop; ``rovergate run --out OUT --resume`` carries on
     from the checkpoint: the per-step coverage equals an uninterrupted run's exactly, and a
     station on the resumed link receives the telemetry numbered on, without a gap."""
-    from mission.credentials import CredentialsConfig, create
-    from mission.ground import gaps
+    from mission.link.credentials import CredentialsConfig, create
+    from mission.link.ground import gaps
 
     steps, condition, out, ground = 30, "gated", tmp_path / "p", tmp_path / "g"
     creds = create(CredentialsConfig(out=tmp_path / "credentials"))
@@ -170,7 +170,7 @@ def test_a_checkpoint_that_names_code_is_refused_not_run(tmp_path: Path):
     """The checkpoint is a pickle: one that would call a function when loaded is refused."""
     import pickle
 
-    from mission.checkpoint import CHECKPOINT, load
+    from mission.runtime.checkpoint import CHECKPOINT, load
     from rovergate.errors import ConfigError
 
     marker = tmp_path / "ran"
@@ -185,7 +185,8 @@ def test_a_checkpoint_that_names_code_is_refused_not_run(tmp_path: Path):
     # Pickle resolves dotted names: a module of ours and `subprocess.Popen` reach Popen.
     def short(text: str) -> bytes:
         return b"\x8c" + bytes([len(text)]) + text.encode()
-    dotted = (b"\x80\x04" + short("mission.supervisor") + short("subprocess.Popen") + b"\x93"
+    dotted = (b"\x80\x04" + short("mission.runtime.supervisor") + short("subprocess.Popen")
+              + b"\x93"
               + short("touch") + short(str(marker)) + b"\x86\x85R.")
     (tmp_path / CHECKPOINT).write_bytes(dotted)
     with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
@@ -197,13 +198,13 @@ def test_a_checkpoint_that_names_code_is_refused_not_run(tmp_path: Path):
 
 
 def test_the_launcher_forks_modules_that_report_their_exit_like_processes(tmp_path: Path):
-    """The module launcher (mission/launcher.py) forks a module from its preloaded
+    """The module launcher (mission/runtime/launcher.py) forks a module from its preloaded
     interpreter: the module logs to its own file under its own command line, and its exit,
     by code or by signal, reaches the mission as subprocess.Popen.returncode gives it."""
     import dataclasses
     import subprocess
 
-    from mission.launcher import Launcher
+    from mission.runtime.launcher import Launcher
     from rovergate.config import MissionConfig, SessionConfig, save_config
     cfg = dataclasses.replace(MissionConfig(out=tmp_path), session=SessionConfig(
         mode="peer", connect=(f"tcp/127.0.0.1:{free_loopback_port()}",),

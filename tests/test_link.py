@@ -16,13 +16,13 @@ import tyro
 import zenoh
 from conftest import ROVERGATE, Mission, StatusWatcher, run_cli
 
-from mission.bridge import LINK_FILE, check_ground_endpoints, loopback
-from mission.contact import ContactPlan, ContactPlanError
-from mission.downlink import DownlinkQueue
-from mission.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
-from mission.operations import CommandError, apply_settings, choose_planner
-from mission.process_set import program_argv
+from mission.link.bridge import LINK_FILE, check_ground_endpoints, loopback
+from mission.link.contact import ContactPlan, ContactPlanError
+from mission.link.downlink import DownlinkQueue
+from mission.link.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
+from mission.link.operations import CommandError, apply_settings, choose_planner
 from mission.run import check_runnable
+from mission.runtime.process_set import program_argv
 from rovergate.config import ContactConfig, MissionConfig, check_values
 from rovergate.errors import ConfigError
 from rovergate.node import cdr_encoding
@@ -135,7 +135,7 @@ def test_queue_bound_drops_old_samples_never_events_nor_radiated_items(tmp_path:
 
 _CRASH = """
 import os, sys
-from mission.downlink import DownlinkQueue
+from mission.link.downlink import DownlinkQueue
 q = DownlinkQueue(sys.argv[1])
 for t in range(50):
     q.put("status", "t", t, bytes(200))
@@ -245,7 +245,7 @@ def test_ground_without_a_usable_link_file_says_so_in_one_line(tmp_path: Path, c
 
 @pytest.mark.parametrize("listen", [(), ("tcp/127.0.0.1:0",)])
 def test_bridge_takes_a_free_port_and_says_where_while_the_link_is_up(tmp_path: Path, listen):
-    from mission.bridge import GroundBridge
+    from mission.link.bridge import GroundBridge
     bridge = GroundBridge(ContactConfig(ground_listen=listen), tmp_path)
     try:
         link = json.loads((tmp_path / LINK_FILE).read_text())
@@ -264,7 +264,7 @@ def test_bridge_takes_a_free_port_and_says_where_while_the_link_is_up(tmp_path: 
 
 
 def test_bridge_leaves_another_missions_link_file_alone(tmp_path: Path):
-    from mission.bridge import GroundBridge
+    from mission.link.bridge import GroundBridge
     bridge = GroundBridge(ContactConfig(), tmp_path)
     _link_file(tmp_path, pid=os.getpid() + 1)  # another mission, same --out, since
     bridge.close()
@@ -359,7 +359,7 @@ class LinkedMission:
     clock's ticks."""
 
     def __init__(self, tmp_path: Path, *flags: str, steps: int) -> None:
-        from mission.credentials import CredentialsConfig, create
+        from mission.link.credentials import CredentialsConfig, create
         from rovergate.session import free_loopback_port
         self.port = free_loopback_port()
         self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
@@ -673,7 +673,7 @@ def test_without_the_missions_credentials_no_command_reaches_the_rover(tmp_path:
     sends passes. Each one sends `planner cmd sh -c 'touch FILE' sh` and `pause` while the
     window is open: FILE never appears, no command reaches the rover, and the mission's
     numbers are a clean run's."""
-    from mission.credentials import CredentialsConfig, create
+    from mission.link.credentials import CredentialsConfig, create
     from rovergate.config import SessionConfig
     from rovergate.keys import Keys
     from rovergate.messages import encode

@@ -92,7 +92,7 @@ def _decode(channel: dict, payload: bytes):
 @pytest.mark.parametrize("mode", ["processes", "in-process"])
 def test_a_foxglove_client_subscribes_to_the_planner_map_and_decodes_it(
         launch, tmp_path: Path, mode: str):
-    # In process, the clouds reach the view unencoded (ecosystem.taps.Deferred).
+    # In process, the clouds reach the view unencoded (rovergate.taps.Deferred).
     extra = ["--in-process"] if mode == "in-process" else []
     mission = launch("run", "--viz", "--viz-port", "0", "--steps", "400", "--platform",
                      "flyer", "--out", str(tmp_path / "run"), *extra)

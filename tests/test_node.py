@@ -130,7 +130,8 @@ def test_a_launched_modules_command_line_reads_as_tyro_reads_it(tmp_path):
     other command line goes to tyro."""
     import dataclasses
 
-    from mission.cli import _launched_config, _mission_config
+    from mission.runtime.flags import launched_config as _launched_config
+    from mission.runtime.flags import mission_config as _mission_config
     from rovergate.config import MissionConfig, save_config
     path = tmp_path / "config.json"
     save_config(dataclasses.replace(MissionConfig(steps=7, condition="gated"), out=tmp_path),

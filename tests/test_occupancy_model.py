@@ -14,20 +14,20 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from mapper.evaluate import Counts, heightmap_completion, score_maps
 from mapper.grid import FREE, OCCUPIED, GridSpec, OccupancyGrid
 from mapper.integrate import backproject
 from mapper.model import (
     IN_CHANNELS,
     OccupancyNet,
-    OccupancyPredictor,
     WindowSpec,
     crop,
     encode,
     load_checkpoint,
     shipped_checkpoint,
 )
-from mapper.training import TrainConfig, gather_world, make_batch, masked_loss, train
+from mapper.predictor import OccupancyPredictor
+from mission.learning.evaluate import Counts, heightmap_completion, score_maps
+from mission.learning.training import TrainConfig, gather_world, make_batch, masked_loss, train
 from rovergate.errors import CheckpointError, ConfigError
 from rovergate.geometry import R_BODY_OPTICAL
 from rovergate.types import CameraIntrinsics
@@ -313,7 +313,7 @@ def test_prediction_reads_thresholds_exactly_and_skips_an_unchanged_window():
 def test_probabilities_round_to_float16_as_numpy_rounds_them():
     """to_float16 at every float16 number in [0, 1], at every rounding boundary between two
     of them (a tie: to even) and a few float32 steps either side, and at random."""
-    from mapper.model import to_float16
+    from mapper.predictor import to_float16
     half = np.arange(0, 0x3C01, dtype=np.uint16).view(np.float16).astype(np.float32)
     mid = ((half[:-1].astype(np.float64) + half[1:]) / 2).astype(np.float32)  # exact
     values = [half, mid]

@@ -30,8 +30,8 @@ def test_the_topdown_map_names_the_platform_and_its_legend_hides_nothing(platfor
     import matplotlib.pyplot as plt
     from matplotlib.colors import to_rgb
 
-    from mission.record import MissionRecord
-    from mission.report import topdown_figure
+    from mission.scoring.record import MissionRecord
+    from mission.scoring.report import topdown_figure
     cfg = mission(platform)
     record = MissionRecord()
     record.base_xy = [(-9.0, 9.0), (-5.0, 5.0), (0.0, 0.0)]

@@ -14,11 +14,11 @@ import zenoh
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from ecosystem.taps import tapped_topics
 from rovergate.config import SessionConfig
 from rovergate.graph import TOPICS
 from rovergate.keys import Keys
 from rovergate.session import free_loopback_port, zenoh_config
+from rovergate.taps import tapped_topics
 from tests.conftest import ROVERGATE, Waiter, read_metrics, recorded_mission, run_cli
 
 PLANNER = "/rover/map/occupancy/planner"
@@ -191,7 +191,7 @@ def test_replay_refuses_what_is_not_a_closed_bag(tmp_path: Path):
 
 
 def test_a_failing_tap_is_stopped_and_the_others_go_on(caplog):
-    from ecosystem.taps import Taps
+    from rovergate.taps import Taps
 
     class Full:
         closed = False

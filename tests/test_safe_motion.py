@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mission.evaluation import PLANNER_FAULT, UNSEEN, StepEvaluator, collision_class, stuck_flags
+from mission.scoring.evaluation import (
+    PLANNER_FAULT,
+    UNSEEN,
+    StepEvaluator,
+    collision_class,
+    stuck_flags,
+)
 from planner.freespace import FreeSpace
 from planner.platforms import FlyerModel, RoverModel
 from rovergate.config import MissionConfig

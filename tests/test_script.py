@@ -1,6 +1,6 @@
 """Mission scripts (issue 17, part 4): a TOML mission file with an operations timeline that a
 ground station plays through the mission's authenticated uplink, and the Python API
-(``from rovergate import Mission``) that the examples use."""
+(``from mission import Mission``) that the examples use."""
 
 from __future__ import annotations
 
@@ -57,8 +57,8 @@ def test_not_toml_is_refused_with_the_parsers_reason(tmp_path: Path):
 
 
 def test_the_api_configures_like_the_file():
-    import rovergate
-    assert rovergate.Mission is Mission  # `from rovergate import Mission`
+    import mission
+    assert mission.Mission is Mission  # `from mission import Mission`
     mission = Mission(steps=20, scene={"name": "crater"}, contact={"period_steps": 10})
     assert (mission.config.steps, mission.config.scene.name) == (20, "crater")
     assert mission.config.contact.period_steps == 10

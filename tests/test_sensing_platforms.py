@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import label
 
-from mission.coverage import CoverageEvaluator
-from mission.loop import run_in_process
+from mission.runtime.loop import run_in_process
+from mission.scoring.coverage import CoverageEvaluator
 from planner.planner import make_planner
 from rover_sim.flyer import FlyerBody
 from rover_sim.rover import RoverBody

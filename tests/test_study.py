@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from conftest import ROVERGATE, wait_gone
 
-from mission.metrics import auc, final_coverage, s70, suppression_audit
-from mission.study import (
+from mission.scoring.metrics import auc, final_coverage, s70, suppression_audit
+from mission.study.spec import (
     OWNED_MISSION_FLAGS,
     RunSpec,
     StudyConfig,
@@ -24,7 +24,7 @@ from mission.study import (
     mission_config,
     refuse_owned_mission_flags,
 )
-from mission.tables import bootstrap_ci, table1, table2
+from mission.study.tables import bootstrap_ci, table1, table2
 from rovergate.config import MissionConfig, SceneConfig, to_dict
 from rovergate.errors import ConfigError
 
@@ -228,7 +228,7 @@ def test_study_refuses_mission_flags_that_only_the_process_set_reads(flag):
 
 
 def test_study_checks_every_mission_setting_before_any_run(tmp_path: Path):
-    from mission.study import check_study
+    from mission.study.spec import check_study
     from rovergate.errors import ConfigError, UnknownNameError
     base = StudyConfig(scenes=("arch_field",), starts=("a",), conditions=("obs",), steps=2,
                        out=tmp_path)
@@ -303,7 +303,7 @@ def test_other_mission_flags_reach_every_run(tmp_path: Path):
 def test_the_validation_preset_stands_for_its_flags_and_a_flag_given_wins(tmp_path: Path):
     import tyro
 
-    from mission.study import (
+    from mission.study.spec import (
         SENSING_PROFILES,
         VALIDATION_CONDITIONS,
         cells,
@@ -334,7 +334,7 @@ def test_the_validation_preset_stands_for_its_flags_and_a_flag_given_wins(tmp_pa
 
 
 def test_a_profile_sets_its_sensing_fields_over_the_missions_and_nothing_else():
-    from mission.study import DEGRADED, DRIFT, SENSING_PROFILES
+    from mission.study.spec import DEGRADED, DRIFT, SENSING_PROFILES
     own = MissionConfig()
     own.sensing = replace(own.sensing, noise_frac=0.05, dropout_pixel_prob=0.2)
     study_cfg = StudyConfig(mission=own, platform=("flyer", "rover"))
@@ -353,7 +353,8 @@ def test_a_profile_sets_its_sensing_fields_over_the_missions_and_nothing_else():
 
 def test_a_study_of_one_platform_keeps_its_settings_and_run_ids(tmp_path: Path):
     """A plain study saves study.json as before cells existed, so it still resumes."""
-    from mission.study import _settings, check_study, run_specs
+    from mission.study.runner import _settings
+    from mission.study.spec import check_study, run_specs
     cfg = check_study(StudyConfig(scenes=("arch_field",), starts=("a",), conditions=("obs",),
                                   reps=1, filter_reps=1, out=tmp_path))
     assert _settings(cfg)["platform"] == "flyer" and "profiles" not in _settings(cfg)
@@ -361,14 +362,14 @@ def test_a_study_of_one_platform_keeps_its_settings_and_run_ids(tmp_path: Path):
 
 
 def test_study_refuses_an_unknown_profile_in_one_line(tmp_path: Path):
-    from mission.study import check_study
+    from mission.study.spec import check_study
     with pytest.raises(ConfigError, match="--profiles: 'foggy' is not a sensing profile; the "
                                           "profiles are nominal, degraded, drift"):
         check_study(StudyConfig(profiles=("foggy",), out=tmp_path))
 
 
 def test_validation_tables_pool_suppression_as_ratios_of_sums():
-    from mission.validation import suppression
+    from mission.study.validation import suppression
     rows = [{"steps": 10, "suppressed_per_step": 10.0, "suppressed_fp_share": 0.9,
              "predicted_fp_per_step": 20.0, "wrongly_withheld_per_step": 1.0},
             {"steps": 10, "suppressed_per_step": 1.0, "suppressed_fp_share": 0.0,
@@ -410,16 +411,17 @@ def test_a_study_of_cells_writes_each_cell_and_the_validation_tables(tmp_path: P
 
 
 def test_a_preset_named_in_python_without_its_settings_is_refused(tmp_path: Path):
-    from mission.study import check_study
+    from mission.study.spec import check_study
     with pytest.raises(ConfigError, match="alone sets nothing; build it with "
-                                          "mission.study.preset_config"):
+                                          "mission.study.runner.preset_config"):
         check_study(StudyConfig(preset="validation", out=tmp_path))
 
 
 def test_a_study_saved_before_a_mission_setting_existed_still_resumes(tmp_path: Path):
     """Settings saved without a mission setting added since are read with it at its
     default (what those runs ran with), so the study resumes."""
-    from mission.study import _normalised, _settings, check_study
+    from mission.study.runner import _normalised, _settings
+    from mission.study.spec import check_study
     cfg = check_study(StudyConfig(scenes=("arch_field",), starts=("a",), conditions=("obs",),
                                   reps=1, filter_reps=1, out=tmp_path))
     now = _settings(cfg)

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mission.study import StudyConfig, run_specs
-from mission.tables import (
+from mission.study.spec import StudyConfig, run_specs
+from mission.study.tables import (
     PLACEBO_LABEL,
     bh,
     failure_modes,

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mission.coverage import auc
-from mission.evaluation import PLANNER_FAULT, UNSEEN, stuck_flags
+from mission.scoring.coverage import auc
+from mission.scoring.evaluation import PLANNER_FAULT, UNSEEN, stuck_flags
 from rovergate.types import ExecutionReport, PlanPath, TraverseReport
 
 
@@ -23,7 +23,7 @@ class MissionRecord:
     """Its height at each pose 0..T."""
     collision_class: list[str | None] = field(default_factory=list)
     """Per motion 0..T-1: planner-fault, unseen-geometry or None (no collision); see
-    :mod:`mission.evaluation`."""
+    :mod:`mission.scoring.evaluation`."""
     fp_gain_share: list[float | None] = field(default_factory=list)
     """Per step 0..T-1: share of the chosen view's gain from oracle false positives."""
     rejected_by_fp: list[int | None] = field(default_factory=list)
@@ -70,7 +70,7 @@ class MissionRecord:
         self.stage_s.setdefault(stage, []).append(seconds)
 
     def stuck(self) -> np.ndarray:
-        """(T+1,) bool: stuck at each pose (:func:`mission.evaluation.stuck_flags`)."""
+        """(T+1,) bool: stuck at each pose (:func:`mission.scoring.evaluation.stuck_flags`)."""
         pos = np.c_[np.array(self.base_xy, dtype=np.float64).reshape(-1, 2),
                     np.array(self.base_z, dtype=np.float64)]
         return stuck_flags(pos)

@@ -1,5 +1,5 @@
 """The study's outputs from its finished runs: runs.csv, the paper's two tables with their
-statistics, coverage plots and summary.json (see :mod:`mission.study`).
+statistics, coverage plots and summary.json (see :mod:`mission.study.runner`).
 
 The statistics, and why they are formed this way:
 
@@ -52,11 +52,11 @@ from scipy.stats import binomtest, false_discovery_control
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from mission.metrics import final_coverage, s70  # noqa: E402
+from mission.scoring.metrics import final_coverage, s70  # noqa: E402
 from rovergate.conditions import get_condition  # noqa: E402
 
 if TYPE_CHECKING:
-    from mission.study import RunSpec, StudyConfig
+    from mission.study.spec import RunSpec, StudyConfig
 
 #: A start of the study: (scene, start name).
 Start = tuple[str, str]
@@ -527,7 +527,7 @@ def driving(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
              "refused, by the first hazard found; backouts: steps the rover backed along the "
              "way it came (planner/traversability.py); stays: steps the planner found no "
              "way to move (the rover's mast then looks around). Collisions by class "
-             "(mission/evaluation.py): a planner fault touched what its map held, unseen "
+             "(mission/scoring/evaluation.py): a planner fault touched what its map held, unseen "
              "geometry what it did not. The layer's time is the planner's "
              "`traverse` stage: the frames into the height map and the step's masks."]
     return "\n".join(lines + notes) + "\n", figures

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from mission.launcher import LaunchedProcess, Launcher, module_args
+from mission.runtime.launcher import LaunchedProcess, Launcher, module_args
 from rovergate.errors import MissionFailed
 
 log = logging.getLogger("rovergate.mission")

@@ -1,55 +1,19 @@
-"""``rovergate study``: the paper's controlled study, every run closed loop from scratch.
+"""The study's settings and the runs they expand to: the types every part of the study shares
+(:class:`StudyConfig`, :class:`RunSpec`), the sensing profiles and presets, the checks a study's
+settings pass before any run starts, and each run's mission configuration."""
 
-Each (scene, start, condition, repetition) is one mission of ``--steps`` planning steps, run in
-one process (:func:`mission.loop.run_in_process`, which gives the same numbers as the process
-set) by a pool of worker processes, one torch thread each. Repetition r runs with seed r, so
-repetitions differ in the planner's candidate draws and OMPL's sampling, and the same seed
-gives the same run in any worker.
-
-Layout of ``--out``::
-
-    study.json          the study's settings (a re-run must match them)
-    runs/<id>/          one finished run: metrics.json, coverage.csv, config.json
-    runs.csv            one row per finished run
-    table1.md           the paper's Table 1 layout over every repetition, bootstrap 95% CIs over
-                        starts, a placebo row (learned against itself), failure modes
-    table2.md           the paper's Table 2 layout: learned against gated, every start, with
-                        sign-flip p-values, Holm correction, a sign test, the paper's selection
-    summary.json        the tables' figures, the study's wall time and per-stage medians
-    coverage_<condition>.png  every run's coverage curve, with the mean
-    coverage_curves.csv every run's per-step coverage, one row per run
-
-A study of cells (``--platform flyer rover``, ``--profiles ...``, or ``--preset validation``)
-runs every (platform, sensing profile) as a cell: run ids start with ``<platform>-<profile>-``,
-each cell's tables (the layout above, without study.json) go to ``<platform>-<profile>/``, and
-the study's own outputs are :mod:`mission.validation`'s: runs.csv over every cell,
-validation.md, validation_*.png and summary.json.
-
-Resuming: a run directory appears only complete (it is written under a temporary name and
-renamed), so a re-run with the same ``--out`` skips every finished run, and a killed study
-loses at most the runs that were in flight.
-"""
 
 from __future__ import annotations
 
-import json
 import logging
-import multiprocessing as mp
 import os
-import shutil
-import signal
-import sys
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from tqdm import tqdm
-
-from rover_sim.catalog import START_NAMES, SUITE, load_scene, resolve_scene
+from rover_sim.catalog import START_NAMES, SUITE, load_scene
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, from_dict, to_dict
 from rovergate.errors import ConfigError
-from rovergate.logs import init_logging
 
 log = logging.getLogger("rovergate.study")
 
@@ -93,7 +57,7 @@ class StudyConfig:
     """Run on a Dask distributed cluster instead of local workers: the scheduler's address,
     e.g. tcp://10.0.0.5:8786 (`dask scheduler` prints it; start `dask worker ADDRESS
     --nthreads 1` on each machine, with rovergate installed). Same runs, same runs.csv, same
-    resumption; see mission/cluster.py and the README."""
+    resumption; see mission/study/cluster.py and the README."""
     torch_threads: int = 1
     """Torch threads per worker."""
     out: Path = Path("runs/study")
@@ -269,7 +233,7 @@ def check_study(cfg: StudyConfig) -> StudyConfig:
         default = StudyConfig()
         if all(getattr(cfg, k) == getattr(default, k) for k in preset):
             raise ConfigError(f"StudyConfig(preset={cfg.preset!r}) alone sets nothing; build "
-                              f"it with mission.study.preset_config({cfg.preset!r}, ...)")
+                              f"it with mission.study.runner.preset_config({cfg.preset!r}, ...)")
     cfg = replace(cfg, platform=_names(cfg.platform), profiles=_names(cfg.profiles))
     if not cfg.platform or not cfg.profiles:
         raise ConfigError("--platform and --profiles each need at least one value")
@@ -337,181 +301,3 @@ def mission_config(cfg: StudyConfig, spec: RunSpec, run_dir: Path) -> MissionCon
     return m
 
 
-# ----------------------------------------------------------------------------- workers
-
-def _init_worker(threads: int) -> None:
-    import torch
-
-    from rovergate.runtime import tune_allocator
-    tune_allocator()
-    torch.set_num_threads(threads)
-    logging.getLogger().setLevel(logging.WARNING)  # the study's log is the progress bar
-
-
-def _run_one(job: tuple[dict, str, str]) -> tuple[str, float, str | None]:
-    """Run one mission into a temporary directory and rename it into place when complete."""
-    from mission.loop import run_in_process
-    from mission.report import write_report
-    from rovergate.config import save_config
-    mission, run_id, runs_dir = job
-    cfg = from_dict(MissionConfig, mission)
-    final = Path(runs_dir) / run_id
-    tmp = Path(runs_dir) / f".{run_id}.tmp-{os.getpid()}"
-    t0 = time.perf_counter()
-    try:
-        resolve_scene(cfg.scene)
-        cfg.out = tmp
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        record = run_in_process(cfg)
-        cfg.out = final
-        if record.recording:  # the bag moves with the run's directory
-            record.recording["path"] = str(final / Path(record.recording["path"]).name)
-        save_config(cfg, tmp / "config.json")
-        write_report(cfg, record, tmp, plots=False)
-        os.replace(tmp, final)
-    except Exception as exc:  # a failed run is reported, and the study goes on
-        shutil.rmtree(tmp, ignore_errors=True)
-        return run_id, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
-    return run_id, time.perf_counter() - t0, None
-
-
-# ----------------------------------------------------------------------------- the study
-
-def _settings(cfg: StudyConfig) -> dict:
-    """What must match for a study directory to be resumed."""
-    d = to_dict(cfg)
-    for k in ("workers", "torch_threads", "out", "bootstrap", "progress", "preset", "record",
-              "cluster"):
-        d.pop(k)
-    d["mission"] = _without_recording(d["mission"])
-    # A study of one platform, nominal, saves its settings as studies did before cells.
-    if not cells(cfg):
-        d["platform"] = cfg.platform[0]
-        d.pop("profiles")
-    return d
-
-
-def _normalised(saved: dict | None) -> dict | None:
-    """Saved settings with the mission's settings that did not exist when they were saved
-    filled in at their defaults (what those runs ran with), so that a study resumes across a
-    release that added a setting."""
-    if not isinstance(saved, dict) or not isinstance(saved.get("mission"), dict):
-        return saved
-    try:
-        mission = to_dict(from_dict(MissionConfig, saved["mission"]))
-    except Exception:  # not ours to judge here: it simply does not match
-        return saved
-    return {**saved, "mission": _without_recording(mission)}
-
-
-#: Mission settings that change what is written or served beside a run, never its figures.
-_OUTPUTS = ("record", "record_compression", "viz", "viz_host", "viz_port", "ros2",
-            "ros2_router", "ros2_domain")
-
-
-def _without_recording(mission: dict) -> dict:
-    return {k: v for k, v in mission.items() if k not in _OUTPUTS}
-
-
-def _results(cfg: StudyConfig, jobs: list, runs_dir: Path):
-    """(run id, seconds, error) of every job as it finishes: from a local pool of
-    ``cfg.workers`` processes, or from the Dask cluster at ``cfg.cluster``."""
-    if cfg.cluster:
-        from mission.cluster import cluster_results
-        yield from cluster_results(cfg.cluster, jobs, cfg.torch_threads, runs_dir)
-        return
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(cfg.workers, initializer=_init_worker,
-                  initargs=(cfg.torch_threads,)) as pool:
-        yield from pool.imap_unordered(_run_one, jobs)
-
-
-def _terminate(signum, frame) -> None:
-    raise KeyboardInterrupt  # leaving the pool's context terminates its workers
-
-
-def main(cfg: StudyConfig) -> int:
-    init_logging("study")
-    signal.signal(signal.SIGTERM, _terminate)
-    cfg = check_study(cfg)
-    out = Path(cfg.out)
-    runs_dir = out / "runs"
-    runs_dir.mkdir(parents=True, exist_ok=True)
-    settings_path = out / "study.json"
-    settings = _settings(cfg)
-    if settings_path.exists():
-        try:
-            saved = json.loads(settings_path.read_text())
-        except ValueError:
-            raise ConfigError(f"{settings_path} is not valid JSON; delete it, or give "
-                              "--out a new directory") from None
-        if _normalised(saved.get("settings")) != settings:
-            raise ConfigError(f"{out} holds a study with other settings; give --out a "
-                              f"new directory, or delete {out} to start this one there")
-        sessions = saved.get("sessions", [])
-    else:
-        sessions = []
-    for leftover in runs_dir.glob(".*.tmp-*"):  # runs that were in flight when killed
-        shutil.rmtree(leftover, ignore_errors=True)
-
-    specs = run_specs(cfg)
-    done = {p.name for p in runs_dir.iterdir() if (p / "metrics.json").exists()}
-    todo = [s for s in specs if s.id not in done]
-    log.info("%d runs: %d finished before, %d to run on %s (out: %s)", len(specs),
-             len(specs) - len(todo), len(todo),
-             f"the Dask cluster at {cfg.cluster}" if cfg.cluster else f"{cfg.workers} workers",
-             out)
-    t0 = time.perf_counter()
-    session = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "runs": 0, "wall_s": 0.0,
-               "workers": cfg.workers, **({"cluster": cfg.cluster} if cfg.cluster else {})}
-    sessions.append(session)
-
-    def save_progress() -> None:
-        # Written whole or not at all: a study killed mid-write must still resume.
-        session["wall_s"] = time.perf_counter() - t0
-        tmp = settings_path.with_name(f".{settings_path.name}.tmp")
-        tmp.write_text(json.dumps({"settings": settings, "sessions": sessions}, indent=1)
-                       + "\n")
-        os.replace(tmp, settings_path)
-
-    save_progress()
-    failures: list[tuple[str, str]] = []
-    if todo:
-        jobs = [(to_dict(mission_config(cfg, s, runs_dir / s.id)), s.id, str(runs_dir))
-                for s in todo]
-        bar = tqdm(total=len(specs), initial=len(specs) - len(todo), desc="study", unit="run",
-                   disable=not cfg.progress, file=sys.stderr, smoothing=0.05)
-        try:
-            for run_id, seconds, error in _results(cfg, jobs, runs_dir):
-                bar.update(1)
-                if error:
-                    failures.append((run_id, error))
-                    log.error("run %s failed after %.0f s: %s", run_id, seconds, error)
-                else:
-                    session["runs"] += 1
-                    bar.set_postfix_str(f"{run_id} {seconds:.0f}s")
-                    log.info("run %s finished in %.0f s", run_id, seconds)
-                save_progress()
-        except KeyboardInterrupt:
-            bar.close()
-            save_progress()
-            log.error("stopped; the finished runs are kept: re-run the same command to resume")
-            return 130
-        bar.close()
-    save_progress()
-
-    if cells(cfg):
-        from mission.validation import write_validation
-        summary = write_validation(cfg, specs, out)
-    else:
-        from mission.tables import write_tables
-        summary = write_tables(cfg, specs, out)
-    wall = sum(s["wall_s"] for s in sessions)
-    log.info("study: %d runs in %.1f min of wall time over %d session(s); tables in %s",
-             summary["runs"], wall / 60, len(sessions), out)
-    if failures:
-        log.error("%d runs failed (re-run the same command to retry them): %s", len(failures),
-                  ", ".join(r for r, _ in failures))
-        return 1
-    return 0

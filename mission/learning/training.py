@@ -2,10 +2,10 @@
 
 Training worlds come from the suite's generators with seeds from :data:`TRAIN_SEED_BASE` up,
 disjoint from every evaluation scene's seed (:func:`check_disjoint`). In each world a rover
-walk and a flyer walk (:mod:`mapper.walks`) are integrated into the mapper's voxel grid exactly
-as in a mission; every few steps the window around the camera is stored with its labels (the
-voxels the true surface passes through). Everything is seeded: with the same torch version and
-thread count, the run reproduces the shipped checkpoint bit for bit.
+walk and a flyer walk (:mod:`mission.learning.walks`) are integrated into the mapper's voxel
+grid exactly as in a mission; every few steps the window around the camera is stored with its
+labels (the voxels the true surface passes through). Everything is seeded: with the same torch
+version and thread count, the run reproduces the shipped checkpoint bit for bit.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from mapper.model import (
     save_checkpoint,
     weights_sha256,
 )
-from mapper.walks import random_sensing, walk
+from mission.learning.walks import random_sensing, walk
 from rover_sim import suite
 from rover_sim.scene import Scene
 from rovergate.errors import ConfigError

@@ -4,8 +4,8 @@ on a mission whose manager was killed.
 Three files under ``OUT`` hold a process-set mission's state as it runs:
 
 - ``journal.sqlite``: every sample the modules rebuild their state from
-  (:class:`mission.journal.Journal`, written through as samples arrive);
-- ``downlink.sqlite``: the onboard telemetry queue (:mod:`mission.downlink`);
+  (:class:`mission.runtime.journal.Journal`, written through as samples arrive);
+- ``downlink.sqlite``: the onboard telemetry queue (:mod:`mission.link.downlink`);
 - ``checkpoint.pickle`` (:data:`CHECKPOINT`): the loop's own state at the last step boundary
   it passed (:class:`LoopState`): the next step, the record so far, the configuration as
   ground commands left it, the link's clock and what was in flight on it, and the
@@ -31,7 +31,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from mission.record import MissionRecord
+from mission.scoring.record import MissionRecord
 from rovergate.config import MissionConfig
 from rovergate.errors import ConfigError
 from rovergate.types import Pose
@@ -53,9 +53,9 @@ class LoopState:
     cfg: MissionConfig
     """The configuration as it stands (ground commands may have changed it)."""
     operations: dict[str, Any] | None = None
-    """:meth:`mission.operations.Operations.snapshot` (None without the ground link)."""
+    """:meth:`mission.link.operations.Operations.snapshot` (None without the ground link)."""
     transport: dict[str, Any] = field(default_factory=dict)
-    """:meth:`mission.process_set.ProcessSetTransport.snapshot`."""
+    """:meth:`mission.runtime.process_set.ProcessSetTransport.snapshot`."""
     saved_at: str = ""
     version: int = VERSION
 

@@ -1,11 +1,11 @@
 """The mission loop, written once: the clock, the step order, coverage, the gate audit and the
-record, driven over either transport (:mod:`mission.transport`).
+record, driven over either transport (:mod:`mission.runtime.transport`).
 
 Step t: the mission ticks t; the simulator drives the path of step t-1 and renders step t; the
 mapper integrates it; the gate and the planner make the map and the path of step t. The
 mission receives what it records of step t-1 (path, execution report, prediction, planner
 map) and of step t (S_t, the base pose), and scores coverage. In the process set the link to
-the ground runs at every step boundary (:class:`mission.operations.Operations`).
+the ground runs at every step boundary (:class:`mission.link.operations.Operations`).
 """
 
 from __future__ import annotations
@@ -19,14 +19,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mission.checkpoint import LoopState
-from mission.checkpoint import remove as remove_checkpoint
-from mission.checkpoint import save as save_checkpoint
-from mission.coverage import CoverageEvaluator
-from mission.evaluation import StepEvaluator, collision_class
-from mission.metrics import suppression_audit
-from mission.record import MissionRecord
-from mission.transport import InProcessTransport, Transport
+from mission.runtime.checkpoint import LoopState
+from mission.runtime.checkpoint import remove as remove_checkpoint
+from mission.runtime.checkpoint import save as save_checkpoint
+from mission.runtime.transport import InProcessTransport, Transport
+from mission.scoring.coverage import CoverageEvaluator
+from mission.scoring.evaluation import StepEvaluator, collision_class
+from mission.scoring.metrics import suppression_audit
+from mission.scoring.record import MissionRecord
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig
 from rovergate.geometry import in_region
@@ -35,8 +35,8 @@ from rovergate.types import Channel, MissionStatus, Source, xyz
 
 if TYPE_CHECKING:
     from ecosystem.recorder import FlightRecorder
-    from ecosystem.taps import Taps
-    from mission.operations import Operations
+    from mission.link.operations import Operations
+    from rovergate.taps import Taps
 
 log = logging.getLogger("rovergate.mission")
 
@@ -49,8 +49,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 ) -> MissionRecord:
     """Run ``cfg.steps`` planning steps over ``transport``; ``on_step(t, coverage)`` is called
     after each pose. ``operations_factory`` (process set only) builds the ground link's
-    :class:`mission.operations.Operations`. With ``checkpoint`` (a directory), the loop's
-    state is saved there after every step (:mod:`mission.checkpoint`); ``resume`` is such a
+    :class:`mission.link.operations.Operations`. With ``checkpoint`` (a directory), the loop's
+    state is saved there after every step (:mod:`mission.runtime.checkpoint`); ``resume`` is such a
     state to carry on from. Raises :class:`rovergate.errors.MissionFailed` on a fault."""
     record = resume.record if resume else MissionRecord(mode=transport.mode)
     t_start = time.perf_counter()
@@ -68,7 +68,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         truth_surface = xyz(transport.ask("truth_surface"))
         evaluator = CoverageEvaluator(truth_surface, cfg.tau_m)
         # Evaluation only: O* (as the simulator derives it) to audit what the gate withheld,
-        # to classify collisions and to weigh the planner's decisions (mission.evaluation).
+        # to classify collisions and to weigh the planner's decisions (mission.scoring.evaluation).
         judge = StepEvaluator(cfg, truth_surface)
         previous_base = resume.previous_base if resume else None
         if ops and resume:
@@ -185,10 +185,10 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
 
 def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False,
                writer: str = "thread") -> tuple[Taps, FlightRecorder | None]:
-    """The taps of a mission (:mod:`ecosystem.taps`): the flight recorder unless
+    """The taps of a mission (:mod:`rovergate.taps`): the flight recorder unless
     ``--no-record``, the live view with ``--viz``, the ROS 2 graph with ``--ros2``. Returns
     the taps and the recorder (None when not recording)."""
-    from ecosystem.taps import Taps
+    from rovergate.taps import Taps
     taps = Taps([])
     recorder = None
     try:
@@ -236,8 +236,8 @@ def run_processes(cfg: MissionConfig, on_step: OnStep | None = None,
     state is checkpointed in ``cfg.out`` after every step (removed when the mission ends,
     kept when it fails or its manager is killed); ``resume`` carries on from such a state.
     ``on_link`` is called once the ground link's endpoint is up."""
-    from mission.operations import Operations
-    from mission.process_set import ProcessSetTransport
+    from mission.link.operations import Operations
+    from mission.runtime.process_set import ProcessSetTransport
     out = Path(cfg.out)
     taps, recorder = _open_taps(cfg, out, resumed=resume is not None)
     try:

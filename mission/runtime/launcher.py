@@ -9,7 +9,7 @@ torch, FCL and OMPL) on top.
 
 Protocol (the mission's :class:`Launcher` is the only client): one JSON object a line on the
 launcher's stdin, ``{"id": N, "argv": [...], "log": PATH, "append": bool}``, a module's
-``mission.cli`` arguments; on its stdout ``{"id": N, "pid": P}`` once forked, and
+``mission.runtime.modules`` arguments; on its stdout ``{"id": N, "pid": P}`` once forked, and
 ``{"exit": P, "code": C}`` when a module exits (``C`` as :attr:`subprocess.Popen.returncode`
 gives it: negative for a signal). When its stdin closes (the mission finished, or died), the
 launcher exits and leaves its modules running: each stops on the mission's final status or
@@ -40,16 +40,17 @@ from rovergate.errors import MissionFailed
 log = logging.getLogger("rovergate.mission")
 
 #: What every module imports (and the codecs of every topic, generated on import below).
-PRELOAD = ("mission.cli", "mission.modules", "rovergate.node", "scipy.spatial")
+PRELOAD = ("mission.runtime.modules", "rovergate.node", "scipy.spatial")
 
 #: How long the mission waits for the launcher to fork a module.
 SPAWN_TIMEOUT_S = 60.0
 
 
 def module_args(argv: list[str]) -> list[str] | None:
-    """The ``mission.cli`` arguments of a command line of our own modules
-    (``python -m mission.cli NAME ...``), or None for any other program (a user's planner)."""
-    if argv[:3] == [sys.executable, "-m", "mission.cli"]:
+    """The arguments of a command line of our own modules
+    (``python -m mission.runtime.modules NAME ...``), or None for any other program (a user's
+    planner)."""
+    if argv[:3] == [sys.executable, "-m", "mission.runtime.modules"]:
         return argv[3:]
     return None
 
@@ -100,7 +101,7 @@ class Launcher:
 
     def __init__(self, log_file: Path) -> None:
         self._log = open(log_file, "w")  # noqa: SIM115 -- closed in close()
-        self.proc = subprocess.Popen([sys.executable, "-m", "mission.launcher"],
+        self.proc = subprocess.Popen([sys.executable, "-m", "mission.runtime.launcher"],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=self._log, bufsize=0)
         self.cv = threading.Condition()
@@ -134,7 +135,8 @@ class Launcher:
             return code
 
     def spawn(self, args: list[str], log_path: Path, append: bool) -> LaunchedProcess:
-        """Fork the module of ``mission.cli`` arguments ``args``, logging to ``log_path``."""
+        """Fork the module of ``mission.runtime.modules`` arguments ``args``, logging to
+        ``log_path``."""
         with self.cv:
             rid = self._next
             self._next += 1
@@ -189,7 +191,7 @@ def _exists(pid: int) -> bool:
 
 def _child(request: dict[str, Any], keep_closed: list[int]) -> None:
     """In the forked module: its own log as stdout and stderr, default signals, then the
-    module's program as ``python -m mission.cli ARGS`` runs it. Never returns."""
+    module's program as ``python -m mission.runtime.modules ARGS`` runs it. Never returns."""
     code = 1
     try:
         signal.set_wakeup_fd(-1)
@@ -209,7 +211,7 @@ def _child(request: dict[str, Any], keep_closed: list[int]) -> None:
         sys.argv = [sys.argv[0], *argv]
         from setproctitle import setproctitle
         setproctitle("rovergate " + " ".join(argv))  # what ps and pgrep show
-        from mission.cli import main
+        from mission.runtime.modules import main
         main(argv)
         code = 0
     except SystemExit as exc:

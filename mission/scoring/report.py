@@ -11,7 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from mission.record import MissionRecord  # noqa: E402
+from mission.scoring.record import MissionRecord  # noqa: E402
 from planner.planner import planner_name  # noqa: E402
 from rover_sim.overview import SURFACE_CMAP  # noqa: E402
 from rovergate.config import MissionConfig  # noqa: E402

@@ -7,14 +7,14 @@ from typing import TYPE_CHECKING
 
 import zenoh
 
-from mission.journal import Journal
+from mission.runtime.journal import Journal
 from rovergate.keys import Keys
 from rovergate.messages import encode
 from rovergate.node import cdr_encoding
 from rovergate.types import MissionStatus
 
 if TYPE_CHECKING:
-    from ecosystem.taps import Taps
+    from rovergate.taps import Taps
 
 
 class MissionClock:

@@ -1,7 +1,7 @@
 """The study's metrics, on coverage curves and on what the gate withheld.
 
 - C_T: the final coverage, the last value of the per-step curve over poses 0..T.
-- AUC: :func:`mission.coverage.auc`, the area under that curve normalised to [0, 1].
+- AUC: :func:`mission.scoring.coverage.auc`, the area under that curve normalised to [0, 1].
 - S70: :func:`s70`, the first step whose coverage reaches 70% of the learned baseline's final
   coverage for the same scene, start and repetition. A run that never reaches it counts as
   T + 1 (one step past the horizon, a censored value), and the study reports how many did not.
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mission.coverage import auc
+from mission.scoring.coverage import auc
 
 __all__ = ["auc", "final_coverage", "s70", "suppression_audit", "S70_FRACTION"]
 

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from mapper.grid import FREE, OCCUPIED, OccupancyGrid
 from mapper.mapper import Mapper
-from mapper.walks import walk
+from mission.learning.walks import walk
 from rovergate.config import MapperConfig
 from rovergate.types import CameraIntrinsics, Pose, SensorFrame, xyz
 

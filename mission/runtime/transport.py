@@ -1,12 +1,12 @@
 """What the mission loop drives: a transport that carries the graph's messages.
 
-The loop (:func:`mission.loop.run_mission`) is written once, against :class:`Transport`: it
+The loop (:func:`mission.runtime.loop.run_mission`) is written once, against :class:`Transport`: it
 ticks the clock, receives its inputs of each step (declared as ``MODULES["mission"]`` in
 :mod:`rovergate.graph`) and keeps the record. Two transports implement it:
 
 - :class:`InProcessTransport` (here): every module's logic in this process, called directly
   and routed by the graph; no Zenoh.
-- :class:`mission.process_set.ProcessSetTransport`: every module its own OS process, over
+- :class:`mission.runtime.process_set.ProcessSetTransport`: every module its own OS process, over
   Zenoh, with health checks and restarts.
 
 Each module is a deterministic function of its inputs, so both give the same numbers to the
@@ -27,7 +27,7 @@ from rovergate.module import ModuleLogic
 from rovergate.types import MissionStatus, StepTiming
 
 if TYPE_CHECKING:
-    from ecosystem.taps import Taps
+    from rovergate.taps import Taps
 
 
 class Transport(Protocol):
@@ -86,10 +86,10 @@ _DEFERRED = frozenset({"depth", "surface", "predicted", "planner_map"})
 
 def _payload(topic: str, value: Any):
     """What the taps get for a value of ``topic``: its CDR bytes, or for a large message a
-    :class:`ecosystem.taps.Deferred` encoding of it."""
+    :class:`rovergate.taps.Deferred` encoding of it."""
     if topic not in _DEFERRED:
         return encode(topic, value)
-    from ecosystem.taps import Deferred
+    from rovergate.taps import Deferred
     arrays = [a for a in (value[1] if isinstance(value, tuple) else value.points,)
               if isinstance(a, np.ndarray)]
     for a in arrays:
@@ -116,7 +116,7 @@ class InProcessTransport:
         self._timings: list[StepTiming] = []
 
     def start(self) -> None:
-        from mission.modules import make_logic
+        from mission.runtime.modules import make_logic
         try:
             # Modules that serve queryables first: the others may ask them while being built
             # (the gate asks the simulator for the reference occupancy).

@@ -1,8 +1,9 @@
 """Mission operations at the step boundary: the link to the ground, and ground commands.
 
-:class:`Operations` sits in the process set's mission loop (:func:`mission.loop.run_mission`),
-and acts on the mission through :class:`MissionControl` (the process set implements it).
-At the top of every step it advances the link (:class:`mission.bridge.GroundBridge`) and
+:class:`Operations` sits in the process set's mission loop
+(:func:`mission.runtime.loop.run_mission`), and acts on the mission through
+:class:`MissionControl` (the process set implements it).
+At the top of every step it advances the link (:class:`mission.link.bridge.GroundBridge`) and
 executes the commands that have reached the rover; after every step it queues that step's
 telemetry. While paused, it keeps the link's clock running in idle steps (the rover holds
 still), so that a ``resume`` can come up in a later window.
@@ -29,8 +30,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mission.bridge import Delivered, GroundBridge
-from mission.supervisor import RestartEvent
+from mission.link.bridge import Delivered, GroundBridge
+from mission.runtime.supervisor import RestartEvent
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, check_values, from_dict, planner_programs, to_dict
 from rovergate.errors import ConfigError, ReconfigurationFailed, UnknownNameError
@@ -350,7 +351,7 @@ class Operations:
             self.bridge.command_ack(CommandAck(c.id, c.verb, "rejected", status.step,
                                                d.received_s, detail))
 
-    # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
+    # --- the mission manager's checkpoint (mission.runtime.checkpoint) ----------------------------
 
     def snapshot(self) -> dict[str, Any]:
         """Pause, the commands run so far (each runs once) and the link's state."""

@@ -1,7 +1,7 @@
 """The study on a Dask distributed cluster (``rovergate study --cluster tcp://HOST:8786``).
 
 Each run is one task: a worker runs the mission in a temporary directory of its own
-(:func:`mission.study._run_one`, the local pool's function, with the same torch threads) and
+(:func:`mission.study.worker.run_one`, the local pool's function, with the same torch threads) and
 returns the run's files as bytes; the study writes them into ``OUT/runs/<id>`` as the local
 pool does (complete or not at all). So the workers need no filesystem shared with the study,
 and the same settings give the same runs, to the last digit, on a cluster or a local pool;
@@ -45,7 +45,7 @@ def run_remote(job: tuple[dict, str, str], torch_threads: int
     """On a worker: run one mission into a temporary directory; its files as bytes."""
     import torch
 
-    from mission.study import _run_one
+    from mission.study.worker import run_one
     from rovergate.runtime import tune_allocator
     tune_allocator()
     torch.set_num_threads(torch_threads)  # as the local pool's workers (the worker's log
@@ -53,7 +53,7 @@ def run_remote(job: tuple[dict, str, str], torch_threads: int
     mission, run_id, runs_dir = job
     final = str(Path(runs_dir) / run_id)  # where the study keeps it
     with tempfile.TemporaryDirectory(prefix="rovergate-run-") as tmp:
-        run_id, seconds, error = _run_one((mission, run_id, tmp))
+        run_id, seconds, error = run_one((mission, run_id, tmp))
         files: dict[str, bytes] = {}
         if error is None:
             root = Path(tmp) / run_id

@@ -41,7 +41,7 @@ import numpy as np
 import tyro
 import zenoh
 
-from mission.bridge import LINK_FILE
+from mission.link.bridge import LINK_FILE
 from rovergate.config import SessionConfig
 from rovergate.errors import ConfigError
 from rovergate.keys import Keys
@@ -114,7 +114,7 @@ def _running_here(pid: int) -> bool:
 
 def resolve_link(cfg: GroundConfig) -> GroundConfig:
     """``cfg`` with the endpoints and the namespace to use: --connect as given, else those in
-    the mission's ground.json (:data:`mission.bridge.LINK_FILE`). A missing, malformed or
+    the mission's ground.json (:data:`mission.link.bridge.LINK_FILE`). A missing, malformed or
     stale file raises :class:`LinkFileError` with one line."""
     if cfg.connect:
         return replace(cfg, namespace=cfg.namespace or "ground")

@@ -1,6 +1,6 @@
 """The process set: every module its own OS process, the mission's messages over Zenoh.
 
-:class:`ProcessSetTransport` implements :class:`mission.transport.Transport` by composing
+:class:`ProcessSetTransport` implements :class:`mission.runtime.transport.Transport` by composing
 parts that each do one job:
 
 - a Zenoh peer session that listens on a Unix socket in a directory of its own, mode 0700
@@ -8,18 +8,18 @@ parts that each do one job:
   any ``--listen`` endpoints for subscribers on other machines, which its access control
   makes read-only (:func:`rovergate.access.rover_network`); and the mission's liveliness
   token;
-- the :class:`~mission.inbox.Inbox` its subscriptions fill (the mission's inputs, from the
+- the :class:`~mission.runtime.inbox.Inbox` its subscriptions fill (the mission's inputs, from the
   graph);
-- the :class:`~mission.journal.JournalServer` (the past inputs a restarted module replays);
-- the :class:`~mission.clock.MissionClock` (the ticks);
-- the :class:`~mission.supervisor.ProcessSupervisor` (launch, watch, restart; no Zenoh).
+- the :class:`~mission.runtime.journal.JournalServer` (the past inputs a restarted module replays);
+- the :class:`~mission.runtime.clock.MissionClock` (the ticks);
+- the :class:`~mission.runtime.supervisor.ProcessSupervisor` (launch, watch, restart; no Zenoh).
 
 Health: when a module dies (or its token vanishes), the loop cannot go on without it, so the
 rover holds still: the simulator executes only the path of the step before, and none comes.
 The module is restarted with ``--resume-step`` and rebuilds its state from the journal; the
 loop resumes at the same step, with the same numbers as if nothing had happened.
 
-It is also the :class:`mission.operations.MissionControl` that ground commands act through.
+It is also the :class:`mission.link.operations.MissionControl` that ground commands act through.
 """
 
 from __future__ import annotations
@@ -37,11 +37,10 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from ecosystem.taps import tapped_topics
-from mission.clock import MissionClock
-from mission.inbox import Inbox
-from mission.journal import JOURNAL, Journal, JournalServer
-from mission.supervisor import ProcessSupervisor, RestartEvent
+from mission.runtime.clock import MissionClock
+from mission.runtime.inbox import Inbox
+from mission.runtime.journal import JOURNAL, Journal, JournalServer
+from mission.runtime.supervisor import ProcessSupervisor, RestartEvent
 from rovergate.access import MODULE_PROTOCOL, rover_network
 from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
@@ -52,10 +51,11 @@ from rovergate.messages import MessageError, prepare
 from rovergate.module import STOP
 from rovergate.node import check_and_decode
 from rovergate.session import open_session
+from rovergate.taps import tapped_topics
 from rovergate.types import MissionStatus, StepTiming
 
 if TYPE_CHECKING:
-    from ecosystem.taps import Taps
+    from rovergate.taps import Taps
 
 
 @dataclasses.dataclass
@@ -287,8 +287,9 @@ class ProcessSetTransport:
                     "--namespace", cfg.session.namespace]
         # A client of the mission's session, listening on nothing: every message between
         # modules passes the one session whose access control governs the network.
-        cmd = [sys.executable, "-m", "mission.cli", name, "--config", str(self.config_path),
-               "--mode", "client", "--connect", self.endpoint, "--listen",  # (none)
+        cmd = [sys.executable, "-m", "mission.runtime.modules", name,
+               "--config", str(self.config_path), "--mode", "client",
+               "--connect", self.endpoint, "--listen",  # (none)
                "--namespace", cfg.session.namespace, "--wait-for-peers", "1"]
         if resume_step is not None:
             cmd += ["--resume-step", str(resume_step)]
@@ -432,7 +433,7 @@ class ProcessSetTransport:
     def restarts(self) -> list[dict[str, Any]]:
         return self._restarts_before + [e.as_dict() for e in self.supervisor.events]
 
-    # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
+    # --- the mission manager's checkpoint (mission.runtime.checkpoint) ----------------------------
 
     def snapshot(self) -> dict[str, Any]:
         """What a resumed manager's transport needs: counts and timings so far, the ground

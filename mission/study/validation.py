@@ -4,7 +4,7 @@
 recall, true surface wrongly withheld, collisions by class, clearance and gate latency, per
 variant and profile.
 
-Statistics, as in :mod:`mission.tables`: every delta pairs run r of a condition with run r of
+Statistics, as in :mod:`mission.study.tables`: every delta pairs run r of a condition with run r of
 its reference (same seed, scene, start, platform and profile); the unit of every interval is
 the start within a cell (scene, start), and pooled over profiles the (profile, scene, start):
 per unit the mean over repetitions, then the mean over units, with a bootstrap 95% interval
@@ -30,7 +30,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from mission.tables import (  # noqa: E402
+from mission.study.tables import (  # noqa: E402
     BASELINE,
     FILTER,
     LABELS,
@@ -47,7 +47,7 @@ from mission.tables import (  # noqa: E402
 from rovergate.conditions import get_condition  # noqa: E402
 
 if TYPE_CHECKING:
-    from mission.study import RunSpec, StudyConfig
+    from mission.study.spec import RunSpec, StudyConfig
 
 #: Profiles whose pose drifts: where the pose-aware gate is compared with the frustum gate.
 DRIFTING = ("drift", "drift+degraded")
@@ -256,7 +256,7 @@ def write_validation(cfg: StudyConfig, specs: list[RunSpec], out: Path) -> dict:
             f"{', '.join(str(n) for n in sorted({len(v) for v in _reps(rows).values()}))} "
             "(repetition r runs with seed r); "
             f"{len(rows)} of {len(specs)} runs finished. Sensing profiles: see "
-            "`mission.study.SENSING_PROFILES`.", ""]
+            "`mission.study.runner.SENSING_PROFILES`.", ""]
     figures: dict = {}
     for p in cfg.platform:
         prow = [r for r in rows if r["platform"] == p]

@@ -6,9 +6,9 @@ station joins another, which only this bridge's session listens on (``--contact.
 by default a free loopback port). While the link is up, ``OUT/ground.json`` says where it
 listens (:data:`LINK_FILE`; ``rovergate ground --mission OUT`` reads it); the bridge removes the
 file when it closes. Nothing crosses except what the bridge passes, and it passes traffic only
-as the contact plan allows (:mod:`mission.contact`):
+as the contact plan allows (:mod:`mission.link.contact`):
 
-- Downlink: telemetry goes into the onboard queue (:mod:`mission.downlink`) as the mission
+- Downlink: telemetry goes into the onboard queue (:mod:`mission.link.downlink`) as the mission
   produces it. In each step of a window the bridge radiates items in priority order within the
   step's rate budget; the ground receives them one light time later, in order of sequence
   number, and acknowledges each.
@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from mission.contact import ContactConfig, ContactPlan
-from mission.downlink import DownlinkQueue
+from mission.link.contact import ContactConfig, ContactPlan
+from mission.link.downlink import DownlinkQueue
 from rovergate.access import ground_network
 from rovergate.config import SessionConfig
 from rovergate.errors import ConfigError
@@ -338,7 +338,7 @@ class GroundBridge:
             window = k + light + 2
         return (window + light) * self.cfg.step_s
 
-    # --- the mission manager's checkpoint (mission.checkpoint) ----------------------------
+    # --- the mission manager's checkpoint (mission.runtime.checkpoint) ----------------------------
 
     def snapshot(self) -> dict[str, Any]:
         """The link's state besides the onboard queue (which is its own file): the clock and

@@ -1,0 +1,53 @@
+"""One run of a study, in a worker process: the mission in a temporary directory, renamed into
+place when complete (the local pool's function, and the Dask cluster's)."""
+
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from pathlib import Path
+
+from rover_sim.catalog import resolve_scene
+from rovergate.config import MissionConfig, from_dict
+
+
+def init_worker(threads: int) -> None:
+    import torch
+
+    from rovergate.runtime import tune_allocator
+    tune_allocator()
+    torch.set_num_threads(threads)
+    logging.getLogger().setLevel(logging.WARNING)  # the study's log is the progress bar
+
+
+def run_one(job: tuple[dict, str, str]) -> tuple[str, float, str | None]:
+    """Run one mission into a temporary directory and rename it into place when complete."""
+    from mission.runtime.loop import run_in_process
+    from mission.scoring.report import write_report
+    from rovergate.config import save_config
+    mission, run_id, runs_dir = job
+    cfg = from_dict(MissionConfig, mission)
+    final = Path(runs_dir) / run_id
+    tmp = Path(runs_dir) / f".{run_id}.tmp-{os.getpid()}"
+    t0 = time.perf_counter()
+    try:
+        resolve_scene(cfg.scene)
+        cfg.out = tmp
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        record = run_in_process(cfg)
+        cfg.out = final
+        if record.recording:  # the bag moves with the run's directory
+            record.recording["path"] = str(final / Path(record.recording["path"]).name)
+        save_config(cfg, tmp / "config.json")
+        write_report(cfg, record, tmp, plots=False)
+        os.replace(tmp, final)
+    except Exception as exc:  # a failed run is reported, and the study goes on
+        shutil.rmtree(tmp, ignore_errors=True)
+        return run_id, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}"
+    return run_id, time.perf_counter() - t0, None
+
+
