@@ -95,7 +95,7 @@ def test_a_study_on_a_cluster_writes_the_local_pools_runs_even_when_a_worker_die
 @pytest.mark.parametrize("address, says", [("scheduler-host", "give the scheduler's address"),
                                             (None, "no Dask scheduler answered")])
 def test_a_cluster_that_cannot_be_used_is_one_line(monkeypatch, address, says):
-    from mission import cluster
+    from mission.study import cluster
     from rovergate.errors import ConfigError
     monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 2)
     address = address or f"tcp://127.0.0.1:{free_loopback_port()}"  # nothing listens there
