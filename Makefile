@@ -24,6 +24,7 @@ run: $(STAMP)
 # processes starting and waiting on each other).
 test: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q -m 'not e2e' -n 2
 	$(BIN)/python -m pytest -q -m e2e -n 2
 

@@ -515,7 +515,7 @@ def check_values(cfg: MissionConfig) -> None:
     """Raise :class:`ConfigError` (one line, naming the flag) for a count, limit or range no
     mission can run with. Names (scene, start, condition, planner) are checked where their
     registries live (:func:`mission.run.check_runnable`)."""
-    for flag, value, least in (
+    counts: tuple[tuple[str, int, int], ...] = (
             ("--steps", cfg.steps, 1), ("--max-restarts", cfg.max_restarts, 0),
             ("--gate.k", cfg.gate.k, 1), ("--sensor.width-px", cfg.sensor.width_px, 8),
             ("--sensor.height-px", cfg.sensor.height_px, 8),
@@ -527,9 +527,10 @@ def check_values(cfg: MissionConfig) -> None:
             ("--hazcam.width-px", cfg.hazcam.width_px, 8),
             ("--hazcam.height-px", cfg.hazcam.height_px, 8),
             ("--traverse.backout-steps", cfg.traverse.backout_steps, 0),
-            ("--eval.n-samples", cfg.eval.n_samples, 1)):
-        if value < least:
-            raise ConfigError(f"{flag} must be at least {least}, got {value}")
+            ("--eval.n-samples", cfg.eval.n_samples, 1))
+    for flag, count, least in counts:
+        if count < least:
+            raise ConfigError(f"{flag} must be at least {least}, got {count}")
     for flag, value in (
             ("--ready-timeout-s", cfg.ready_timeout_s), ("--step-timeout-s", cfg.step_timeout_s),
             ("--gate.epsilon-frac", cfg.gate.epsilon_frac),
@@ -607,7 +608,8 @@ def to_dict(cfg: Any) -> dict[str, Any]:
         if isinstance(v, dict):
             return {k: conv(x) for k, x in v.items()}
         return v
-    return conv(dataclasses.asdict(cfg))
+    out: dict[str, Any] = conv(dataclasses.asdict(cfg))
+    return out
 
 
 def from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
@@ -621,7 +623,7 @@ def from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
         hint = hints[key]
         while typing.get_origin(hint) is typing.Annotated:
             hint = typing.get_args(hint)[0]
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             kwargs[key] = from_dict(hint, value, f"{where}.{key}")
         elif hint is Path or (hint == Path | None and value is not None):
             kwargs[key] = Path(value)
@@ -650,7 +652,8 @@ def load_config(path: Path) -> MissionConfig:
         for section, key in RETIRED_KEYS:  # a config saved before the key was retired
             if isinstance(data, dict) and isinstance(data.get(section), dict):
                 data[section].pop(key, None)
-        return from_dict(MissionConfig, data)
+        cfg: MissionConfig = from_dict(MissionConfig, data)
+        return cfg
     except FileNotFoundError:
         raise ConfigError(f"config file {path} does not exist; pass the config.json that "
                           "`rovergate run` wrote, or leave --config out") from None

@@ -83,7 +83,8 @@ def densify_se2(poses: list[tuple[float, ...]], spacing_m: float,
     """The poses along straight SE(2) motions through ``poses`` (x, y and heading together,
     as OMPL interpolates them and the simulator executes them), at most ``spacing_m`` and
     ``max_turn_rad`` apart, the first pose included."""
-    out = [tuple(poses[0][:3])]
+    x, y, a = poses[0][:3]
+    out = [(x, y, a)]
     for (x0, y0, a0), (x1, y1, a1) in zip([p[:3] for p in poses[:-1]],
                                           [p[:3] for p in poses[1:]], strict=True):
         da = wrap_angle(a1 - a0)

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
 
 from rovergate.graph import TOPICS
 from rovergate.types import (
@@ -60,11 +61,16 @@ MAX_IMAGE_PIXELS = 4096 * 4096
 MAX_PATH_POSES = 10_000
 
 
+#: A message of the typestore: rosbags generates its classes at run time, so they are typed
+#: as Any here; every decoder checks what it reads.
+RosMsg = Any
+
+
 class MessageError(ValueError):
     """A message that does not decode, or decodes to the wrong type or shape."""
 
 
-def _build_typestore():
+def _build_typestore() -> Typestore:
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = {}
     for name in PROJECT_TYPES:
@@ -82,18 +88,18 @@ _POINTFIELD = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4
 _POINTFIELD_INV = {np.dtype(v).str: k for k, v in _POINTFIELD.items()}
 
 
-def _header(step: int, frame_id: str = "map"):
+def _header(step: int, frame_id: str = "map") -> RosMsg:
     return _T["std_msgs/msg/Header"](
         stamp=_T["builtin_interfaces/msg/Time"](sec=int(step), nanosec=0), frame_id=frame_id)
 
 
-def _step(header) -> int:
+def _step(header: RosMsg) -> int:
     return int(header.stamp.sec)
 
 
 # --- images ---------------------------------------------------------------------------------
 
-def depth_to_ros(step: int, depth_m: np.ndarray, frame_id: str = "camera"):
+def depth_to_ros(step: int, depth_m: np.ndarray, frame_id: str = "camera") -> RosMsg:
     depth = np.ascontiguousarray(depth_m, dtype="<f4")
     h, w = depth.shape
     return _T["sensor_msgs/msg/Image"](
@@ -101,7 +107,7 @@ def depth_to_ros(step: int, depth_m: np.ndarray, frame_id: str = "camera"):
         step=4 * w, data=depth.view(np.uint8).ravel())
 
 
-def hazcam_from_ros(msg) -> tuple[int, np.ndarray]:
+def hazcam_from_ros(msg: RosMsg) -> tuple[int, np.ndarray]:
     """A hazard camera's depth: as :func:`depth_from_ros`, and 0 x 0 (a platform without
     hazard cameras) is a valid, empty image."""
     if msg.height == 0 and msg.width == 0 and len(msg.data) == 0 and msg.encoding == "32FC1":
@@ -109,7 +115,7 @@ def hazcam_from_ros(msg) -> tuple[int, np.ndarray]:
     return depth_from_ros(msg)
 
 
-def depth_from_ros(msg) -> tuple[int, np.ndarray]:
+def depth_from_ros(msg: RosMsg) -> tuple[int, np.ndarray]:
     if msg.encoding != "32FC1":
         raise MessageError(f"depth image encoding is {msg.encoding!r}, expected '32FC1'")
     if msg.is_bigendian:
@@ -126,7 +132,7 @@ def depth_from_ros(msg) -> tuple[int, np.ndarray]:
 
 # --- camera info ----------------------------------------------------------------------------
 
-def camera_info_to_ros(step: int, k: CameraIntrinsics, frame_id: str = "camera"):
+def camera_info_to_ros(step: int, k: CameraIntrinsics, frame_id: str = "camera") -> RosMsg:
     K = np.array([k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1], dtype=np.float64)
     P = np.array([k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1, 0], dtype=np.float64)
     roi = _T["sensor_msgs/msg/RegionOfInterest"](
@@ -137,7 +143,7 @@ def camera_info_to_ros(step: int, k: CameraIntrinsics, frame_id: str = "camera")
         binning_x=0, binning_y=0, roi=roi)
 
 
-def camera_info_from_ros(msg) -> tuple[int, CameraIntrinsics]:
+def camera_info_from_ros(msg: RosMsg) -> tuple[int, CameraIntrinsics]:
     K = np.asarray(msg.k, dtype=np.float64)
     if K.shape != (9,) or not np.all(np.isfinite(K)) or K[0] <= 0 or K[4] <= 0 \
             or msg.width == 0 or msg.height == 0:
@@ -152,7 +158,7 @@ def camera_info_from_ros(msg) -> tuple[int, CameraIntrinsics]:
 
 # --- poses and paths ------------------------------------------------------------------------
 
-def _pose_msg(pose: Pose):
+def _pose_msg(pose: Pose) -> RosMsg:
     p, q = pose.position, pose.orientation_xyzw
     return _T["geometry_msgs/msg/Pose"](
         position=_T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
@@ -160,7 +166,7 @@ def _pose_msg(pose: Pose):
             x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
 
 
-def _pose_from_msg(msg) -> Pose:
+def _pose_from_msg(msg: RosMsg) -> Pose:
     p, q = msg.position, msg.orientation
     quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
     values = np.array([p.x, p.y, p.z, *quat])
@@ -173,22 +179,22 @@ def _pose_from_msg(msg) -> Pose:
     return Pose(np.array([p.x, p.y, p.z], dtype=np.float64), quat)
 
 
-def pose_to_ros(step: int, pose: Pose):
+def pose_to_ros(step: int, pose: Pose) -> RosMsg:
     return _T["geometry_msgs/msg/PoseStamped"](header=_header(step), pose=_pose_msg(pose))
 
 
-def pose_from_ros(msg) -> tuple[int, Pose]:
+def pose_from_ros(msg: RosMsg) -> tuple[int, Pose]:
     return _step(msg.header), _pose_from_msg(msg.pose)
 
 
-def pose_cov_to_ros(step: int, value: PoseWithCovariance):
+def pose_cov_to_ros(step: int, value: PoseWithCovariance) -> RosMsg:
     return _T["geometry_msgs/msg/PoseWithCovarianceStamped"](
         header=_header(step), pose=_T["geometry_msgs/msg/PoseWithCovariance"](
             pose=_pose_msg(value.pose),
             covariance=np.ascontiguousarray(value.covariance, dtype=np.float64).ravel()))
 
 
-def pose_cov_from_ros(msg) -> tuple[int, PoseWithCovariance]:
+def pose_cov_from_ros(msg: RosMsg) -> tuple[int, PoseWithCovariance]:
     cov = np.asarray(msg.pose.covariance, dtype=np.float64)
     if cov.shape != (36,) or not np.all(np.isfinite(cov)):
         raise MessageError("pose covariance must be 36 finite values")
@@ -198,13 +204,13 @@ def pose_cov_from_ros(msg) -> tuple[int, PoseWithCovariance]:
     return _step(msg.header), PoseWithCovariance(_pose_from_msg(msg.pose.pose), cov)
 
 
-def path_to_ros(path: PlanPath):
+def path_to_ros(path: PlanPath) -> RosMsg:
     poses = [_T["geometry_msgs/msg/PoseStamped"](header=_header(path.step), pose=_pose_msg(p))
              for p in path.poses]
     return _T["nav_msgs/msg/Path"](header=_header(path.step), poses=poses)
 
 
-def path_from_ros(msg) -> PlanPath:
+def path_from_ros(msg: RosMsg) -> PlanPath:
     if len(msg.poses) > MAX_PATH_POSES:
         raise MessageError(f"path of {len(msg.poses)} poses is over the limit of "
                            f"{MAX_PATH_POSES}")
@@ -213,12 +219,20 @@ def path_from_ros(msg) -> PlanPath:
 
 # --- point clouds ---------------------------------------------------------------------------
 
-def cloud_to_ros(step: int, cloud: np.ndarray):
+def _structured(dt: np.dtype) -> tuple[tuple[str, ...], Any]:
+    """The field names and fields of a structured dtype."""
+    if dt.names is None or dt.fields is None:
+        raise MessageError(f"dtype {dt} is not a structured dtype")
+    return dt.names, dt.fields
+
+
+def cloud_to_ros(step: int, cloud: np.ndarray) -> RosMsg:
     """Structured numpy array -> sensor_msgs/PointCloud2 (one row, little-endian, packed)."""
     dt = cloud.dtype
+    names, dt_fields = _structured(dt)
     fields = [_T["sensor_msgs/msg/PointField"](
-        name=name, offset=dt.fields[name][1], datatype=_POINTFIELD_INV[dt.fields[name][0].str],
-        count=1) for name in dt.names]
+        name=name, offset=dt_fields[name][1], datatype=_POINTFIELD_INV[dt_fields[name][0].str],
+        count=1) for name in names]
     n = len(cloud)
     return _T["sensor_msgs/msg/PointCloud2"](
         header=_header(step), height=1, width=n, fields=fields, is_bigendian=False,
@@ -226,17 +240,18 @@ def cloud_to_ros(step: int, cloud: np.ndarray):
         data=np.ascontiguousarray(cloud).view(np.uint8).ravel(), is_dense=True)
 
 
-def cloud_from_ros(msg, expected: np.dtype) -> tuple[int, np.ndarray]:
+def cloud_from_ros(msg: RosMsg, expected: np.dtype) -> tuple[int, np.ndarray]:
     """sensor_msgs/PointCloud2 -> structured array of ``expected`` dtype, checked field by field."""
     if int(msg.width) * int(msg.height) > MAX_POINTS:
         raise MessageError(f"point cloud of {int(msg.width) * int(msg.height)} points is over "
                            f"the limit of {MAX_POINTS}")
+    names, fields = _structured(expected)
     got = {f.name: (int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields}
-    for name in expected.names:
+    for name in names:
         if name not in got:
             raise MessageError(f"point cloud lacks field {name!r} (has {sorted(got)})")
         offset, datatype, count = got[name]
-        want = _POINTFIELD_INV[expected.fields[name][0].str]
+        want = _POINTFIELD_INV[fields[name][0].str]
         if datatype != want or count != 1:
             raise MessageError(f"point cloud field {name!r} has datatype {datatype} x{count}, "
                                f"expected {want} x1")
@@ -247,32 +262,33 @@ def cloud_from_ros(msg, expected: np.dtype) -> tuple[int, np.ndarray]:
     if len(msg.data) != n * step:
         raise MessageError(f"point cloud of {n} points x {step} bytes carries "
                            f"{len(msg.data)} bytes")
-    wire = np.dtype({"names": list(expected.names),
-                     "formats": [expected.fields[k][0] for k in expected.names],
-                     "offsets": [got[k][0] for k in expected.names], "itemsize": step})
+    layout: Any = {"names": list(names),
+              "formats": [fields[k][0] for k in names],
+              "offsets": [got[k][0] for k in names], "itemsize": step}
+    wire = np.dtype(layout)
     if wire == expected:  # our own layout (every rovergate publisher): one copy of the bytes
         return _step(msg.header), np.array(msg.data, dtype=np.uint8, copy=True).view(expected)
     raw = np.frombuffer(msg.data.tobytes(), dtype=wire, count=n)
     out = np.empty(n, dtype=expected)
-    for name in expected.names:
+    for name in names:
         out[name] = raw[name]
     return _step(msg.header), out
 
 
 # --- project types --------------------------------------------------------------------------
 
-def status_to_ros(s: MissionStatus):
+def status_to_ros(s: MissionStatus) -> RosMsg:
     return _T["rovergate_msgs/msg/MissionStatus"](
         header=_header(s.step), step=s.step, steps_total=s.steps_total, state=s.state,
         condition=s.condition, coverage=float(s.coverage), collisions=s.collisions)
 
 
-def status_from_ros(m) -> MissionStatus:
+def status_from_ros(m: RosMsg) -> MissionStatus:
     return MissionStatus(int(m.step), int(m.steps_total), str(m.state), str(m.condition),
                          float(m.coverage), int(m.collisions))
 
 
-def execution_to_ros(r: ExecutionReport):
+def execution_to_ros(r: ExecutionReport) -> RosMsg:
     return _T["rovergate_msgs/msg/ExecutionReport"](
         header=_header(r.step), step=r.step, collided=bool(r.collided),
         collision_samples=r.collision_samples, min_clearance_m=float(r.min_clearance_m),
@@ -282,14 +298,14 @@ def execution_to_ros(r: ExecutionReport):
             *(float(v) for v in (r.contact if r.contact is not None else (np.nan,) * 3))))
 
 
-def execution_from_ros(m) -> ExecutionReport:
+def execution_from_ros(m: RosMsg) -> ExecutionReport:
     return ExecutionReport(int(m.step), bool(m.collided), int(m.collision_samples),
                            float(m.min_clearance_m), float(m.path_length_m),
                            float(m.executed_fraction), bool(m.untraversable),
                            float(m.pose_error_m), _contact(m.contact))
 
 
-def _contact(p) -> tuple[float, float, float] | None:
+def _contact(p: RosMsg) -> tuple[float, float, float] | None:
     xyz = (float(p.x), float(p.y), float(p.z))
     return None if np.isnan(xyz[0]) else xyz
 
@@ -298,18 +314,18 @@ _HAZARD_FIELDS = {"unknown": "refused_unknown", "wheel-drop": "refused_wheel_dro
                   "tilt": "refused_tilt", "belly": "refused_belly"}
 
 
-def traverse_to_ros(r: TraverseReport):
+def traverse_to_ros(r: TraverseReport) -> RosMsg:
     return _T["rovergate_msgs/msg/TraverseReport"](
         header=_header(r.step), step=r.step, reason=r.reason, known_cells=int(r.known_cells),
         **{f: int(r.refused.get(k, 0)) for k, f in _HAZARD_FIELDS.items()})
 
 
-def traverse_from_ros(m) -> TraverseReport:
+def traverse_from_ros(m: RosMsg) -> TraverseReport:
     return TraverseReport(int(m.step), {k: int(getattr(m, f)) for k, f in _HAZARD_FIELDS.items()},
                           str(m.reason), int(m.known_cells))
 
 
-def grid_to_ros(g: TraversabilityGrid):
+def grid_to_ros(g: TraversabilityGrid) -> RosMsg:
     h, w = g.cells.shape
     origin = _T["geometry_msgs/msg/Pose"](
         position=_T["geometry_msgs/msg/Point"](x=float(g.origin_xy[0]), y=float(g.origin_xy[1]),
@@ -323,7 +339,7 @@ def grid_to_ros(g: TraversabilityGrid):
         data=np.ascontiguousarray(g.cells, dtype=np.int8).ravel())
 
 
-def grid_from_ros(m) -> TraversabilityGrid:
+def grid_from_ros(m: RosMsg) -> TraversabilityGrid:
     h, w = int(m.info.height), int(m.info.width)
     if h * w > MAX_IMAGE_PIXELS or len(m.data) != h * w:
         raise MessageError(f"occupancy grid of {w}x{h} carries {len(m.data)} cells")
@@ -332,64 +348,64 @@ def grid_from_ros(m) -> TraversabilityGrid:
                               (float(m.info.origin.position.x), float(m.info.origin.position.y)))
 
 
-def timing_to_ros(t: StepTiming):
+def timing_to_ros(t: StepTiming) -> RosMsg:
     return _T["rovergate_msgs/msg/StepTiming"](
         header=_header(t.step), step=t.step, module=t.module, compute_s=float(t.compute_s),
         dropped_total=t.dropped_total)
 
 
-def timing_from_ros(m) -> StepTiming:
+def timing_from_ros(m: RosMsg) -> StepTiming:
     return StepTiming(int(m.step), str(m.module), float(m.compute_s), int(m.dropped_total))
 
 
 # --- the ground link ------------------------------------------------------------------------
 
-def frame_to_ros(f: TelemetryFrame):
+def frame_to_ros(f: TelemetryFrame) -> RosMsg:
     return _T["rovergate_msgs/msg/TelemetryFrame"](
         header=_header(f.step), seq=f.seq, kind=f.kind, msgtype=f.msgtype, step=f.step,
         radiated_s=float(f.radiated_s), payload=np.frombuffer(f.payload, dtype=np.uint8))
 
 
-def frame_from_ros(m) -> TelemetryFrame:
+def frame_from_ros(m: RosMsg) -> TelemetryFrame:
     return TelemetryFrame(int(m.seq), str(m.kind), str(m.msgtype), int(m.step),
                           float(m.radiated_s), m.payload.tobytes())
 
 
-def ack_to_ros(a: DownlinkAck):
+def ack_to_ros(a: DownlinkAck) -> RosMsg:
     return _T["rovergate_msgs/msg/DownlinkAck"](
         header=_header(0), seqs=np.asarray(a.seqs, dtype=np.uint64))
 
 
-def ack_from_ros(m) -> tuple[int, DownlinkAck]:
+def ack_from_ros(m: RosMsg) -> tuple[int, DownlinkAck]:
     return 0, DownlinkAck([int(s) for s in m.seqs])
 
 
-def command_to_ros(c: GroundCommand):
+def command_to_ros(c: GroundCommand) -> RosMsg:
     return _T["rovergate_msgs/msg/GroundCommand"](header=_header(0), id=c.id, verb=c.verb,
                                                   args=list(c.args))
 
 
-def command_from_ros(m) -> tuple[int, GroundCommand]:
+def command_from_ros(m: RosMsg) -> tuple[int, GroundCommand]:
     return 0, GroundCommand(int(m.id), str(m.verb), [str(a) for a in m.args])
 
 
-def command_ack_to_ros(a: CommandAck):
+def command_ack_to_ros(a: CommandAck) -> RosMsg:
     return _T["rovergate_msgs/msg/CommandAck"](
         header=_header(a.step), id=a.id, verb=a.verb, state=a.state, step=a.step,
         received_s=float(a.received_s), detail=a.detail)
 
 
-def command_ack_from_ros(m) -> CommandAck:
+def command_ack_from_ros(m: RosMsg) -> CommandAck:
     return CommandAck(int(m.id), str(m.verb), str(m.state), int(m.step), float(m.received_s),
                       str(m.detail))
 
 
-def event_to_ros(e: MissionEvent):
+def event_to_ros(e: MissionEvent) -> RosMsg:
     return _T["rovergate_msgs/msg/MissionEvent"](header=_header(e.step), step=e.step,
                                                  kind=e.kind, detail=e.detail)
 
 
-def event_from_ros(m) -> MissionEvent:
+def event_from_ros(m: RosMsg) -> MissionEvent:
     return MissionEvent(int(m.step), str(m.kind), str(m.detail))
 
 
@@ -397,29 +413,36 @@ def event_from_ros(m) -> MissionEvent:
 # ``to_ros`` takes the value a module publishes; ``from_ros`` returns (step, value).
 
 def _with_step(from_ros: Callable[[Any], Any]) -> Callable[[Any], tuple[int, Any]]:
-    def decode_with_step(msg):
+    def decode_with_step(msg: RosMsg) -> tuple[int, Any]:
         value = from_ros(msg)
         return value.step, value
     return decode_with_step
 
 
-def _planner_map_from_ros(msg) -> PlannerMap:
+def _planner_map_from_ros(msg: RosMsg) -> PlannerMap:
     step, points = cloud_from_ros(msg, PLANNER_DTYPE)
     return PlannerMap(step, points)
 
 
-def _cloud_codec(dtype: np.dtype):
+def _in_frame(to_ros: Callable[..., RosMsg], frame_id: str) -> Callable[[Any], RosMsg]:
+    """An encoder of ``(step, value)`` by ``to_ros`` in frame ``frame_id``."""
+    def encode(v: tuple[int, Any]) -> RosMsg:
+        return to_ros(v[0], v[1], frame_id=frame_id)
+    return encode
+
+
+def _cloud_codec(dtype: np.dtype) -> tuple[Callable[[Any], RosMsg],
+                                          Callable[[Any], tuple[int, np.ndarray]]]:
     return (lambda v: cloud_to_ros(*v), lambda m: cloud_from_ros(m, dtype))
 
 
 _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]] = {
     "depth": (lambda v: depth_to_ros(*v), depth_from_ros),
     "camera_info": (lambda v: camera_info_to_ros(*v), camera_info_from_ros),
-    **{f"hazcam_{end}": (lambda v, f=f"hazcam_{end}_optical": depth_to_ros(*v, frame_id=f),
-                         hazcam_from_ros) for end in ("front", "rear")},
-    **{f"hazcam_{end}_info": (lambda v, f=f"hazcam_{end}_optical":
-                              camera_info_to_ros(*v, frame_id=f), camera_info_from_ros)
+    **{f"hazcam_{end}": (_in_frame(depth_to_ros, f"hazcam_{end}_optical"), hazcam_from_ros)
        for end in ("front", "rear")},
+    **{f"hazcam_{end}_info": (_in_frame(camera_info_to_ros, f"hazcam_{end}_optical"),
+                              camera_info_from_ros) for end in ("front", "rear")},
     "pose": (lambda v: pose_to_ros(*v), pose_from_ros),
     "pose_cov": (lambda v: pose_cov_to_ros(*v), pose_cov_from_ros),
     "base_pose": (lambda v: pose_to_ros(*v), pose_from_ros),
@@ -486,7 +509,7 @@ def stamped(topic: str, value: Any) -> tuple[int, Any]:
     """``(step, value as a reader receives it)`` of a value written for ``topic``: what
     :func:`decode` gives back from :func:`encode`'s bytes, without the bytes."""
     if topic in _STEP_PAIRS:
-        return value
+        return (int(value[0]), value[1])
     return value.step, value
 
 

@@ -14,6 +14,7 @@ key and the reason, counted, and dropped; the process runs on.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import queue
 import resource
@@ -99,7 +100,7 @@ class ModuleNode:
         self._mission_seen = False
         self._watchdog = self.session.liveliness().declare_subscriber(
             self.keys.alive("mission"), self._on_mission_liveliness, history=True)
-        self._queryables: list[zenoh.Queryable] = []
+        self._queryables: list[zenoh.Queryable[None]] = []
         self._first_step = 0
 
     # --- receiving ------------------------------------------------------------------------
@@ -290,7 +291,7 @@ class ModuleNode:
                 return "mission-lost"
             if topic == "status" and value.state in ("done", "aborted"):
                 self.log.info("mission %s at step %d; stopping", value.state, value.step)
-                return value.state
+                return str(value.state)
             if topic == "status" and value.state == "paused":
                 continue  # the mission holds the clock: a keep-alive, not a tick
             for name, inp in self.inputs.items():
@@ -307,7 +308,7 @@ class ModuleNode:
         already): first rebuild the state from the journal (:meth:`resume`)."""
         try:
             for topic in self.spec.serves:
-                self.serve(topic, lambda topic=topic: logic.serve(topic))
+                self.serve(topic, functools.partial(logic.serve, topic))
             if resume_step is not None:
                 self.wait_for_peers()
                 self.resume(resume_step, logic)

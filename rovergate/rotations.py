@@ -48,9 +48,9 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     else:
         s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
         q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q, dtype=np.float64)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    out = np.array(q, dtype=np.float64)
+    out /= np.linalg.norm(out)
+    return -out if out[3] < 0 else out
 
 
 def yaw_to_quat(yaw: float) -> np.ndarray:

@@ -37,17 +37,17 @@ class Deferred:
     __slots__ = ("_encode", "_data", "_lock", "size_hint")
 
     def __init__(self, encode: Callable[[], bytes], size_hint: int) -> None:
-        self._encode = encode
+        self._encode: Callable[[], bytes] | None = encode
         self._data: bytes | None = None
         self._lock = threading.Lock()
         self.size_hint = size_hint
 
     def __bytes__(self) -> bytes:
         with self._lock:
-            if self._data is None:
+            if self._data is None and self._encode is not None:
                 self._data = self._encode()
                 self._encode = None  # the value it held may go
-            return self._data
+            return self._data if self._data is not None else b""
 
     def __len__(self) -> int:
         return len(self._data) if self._data is not None else self.size_hint

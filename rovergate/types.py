@@ -158,7 +158,7 @@ def make_cloud(points_xyz: np.ndarray, dtype: np.dtype, **fields: np.ndarray) ->
     """Structured cloud of ``dtype`` from (N, 3) coordinates and per-point fields."""
     out = np.zeros(len(points_xyz), dtype=dtype)
     out["x"], out["y"], out["z"] = points_xyz[:, 0], points_xyz[:, 1], points_xyz[:, 2]
-    if "channels" in dtype.names:  # a planner-facing point serves both unless told
+    if "channels" in (dtype.names or ()):  # a planner-facing point serves both unless told
         out["channels"] = Channel.BOTH
     for name, values in fields.items():
         out[name] = values
