@@ -26,7 +26,7 @@ from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, check_values, planner_programs, save_config, to_dict
 from rovergate.errors import ConfigError, MissionFailed, UnknownNameError
 from rovergate.geometry import check_platform
-from rovergate.logs import init_logging
+from rovergate.logs import init_logging, plural
 
 
 def check_runnable(cfg: MissionConfig) -> None:
@@ -132,8 +132,11 @@ def main(cfg: MissionConfig, on_link: Callable[[], None] | None = None) -> int:
     if state is None:
         remove_checkpoint(out)  # another mission's, in the same --out
         save_config(cfg, out / "config.json")
-        log.info("config (saved to %s):\n%s", out / "config.json",
-                 json.dumps(to_dict(cfg), indent=1))
+        log.info("%s, %s, %s on %s/%s, %s; configuration in %s (`rovergate run --config "
+                 "%s` runs it again)", "in process" if cfg.in_process else "process set",
+                 cfg.platform, cfg.condition, cfg.scene.name, cfg.start, plural(cfg.steps, "step"),
+                 out / "config.json", out / "config.json")
+        log.debug("config:\n%s", json.dumps(to_dict(cfg), indent=1))
     else:
         log.info("resuming the mission in %s at step %d (checkpoint of %s)", out, state.step,
                  state.saved_at)
@@ -157,8 +160,12 @@ def main(cfg: MissionConfig, on_link: Callable[[], None] | None = None) -> int:
         return 130
     bar.close()
     metrics = write_report(cfg, record, out)
-    log.info("final coverage %.4f, AUC %.4f, %d collisions, %.1f m driven, %.1f s; report in %s",
-             metrics["final_coverage"], metrics["auc"], metrics["collisions"],
-             metrics["path_length_m"], metrics["wall_s"], out)
+    log.info("final coverage %.4f, AUC %.4f, %s, %.1f m driven, %.1f s", metrics["final_coverage"],
+             metrics["auc"], plural(metrics["collisions"], "collision"), metrics["path_length_m"],
+             metrics["wall_s"])
+    files = ["metrics.json", "coverage.csv", "coverage.png", "map_topdown.png", "config.json"]
+    log.info("report in %s: %s%s", out, ", ".join(f for f in files if (out / f).exists()),
+             f"; the bag in {record.recording['path']} (`rovergate replay "
+             f"{record.recording['path']}`)" if record.recording else "")
     logging.shutdown()
     return 0

@@ -16,10 +16,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pybullet as pb
 import trimesh
 from scipy.ndimage import distance_transform_edt
 
+from rover_sim.bullet import pb
 from rover_sim.scene import Scene, heightfield_mesh
 from rovergate.errors import ConfigError
 

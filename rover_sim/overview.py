@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pybullet as pb
 import tyro
 
+from rover_sim.bullet import pb
 from rover_sim.catalog import SCENES, load_scene
 from rover_sim.scene import Scene
 from rover_sim.world import add_scene

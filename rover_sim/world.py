@@ -12,8 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as pb
 
+from rover_sim.bullet import pb
 from rover_sim.scene import Scene
 from rovergate.config import HazcamConfig, RoverConfig, SensorConfig
 from rovergate.geometry import matrix_to_quat

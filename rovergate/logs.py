@@ -22,6 +22,12 @@ def init_logging(process_name: str, level: str | None = None) -> logging.Logger:
     return logging.getLogger(f"rovergate.{process_name}")
 
 
+def plural(n: int, word: str, words: str | None = None) -> str:
+    """``n`` and the word in its number: ``plural(1, "collision")`` is "1 collision",
+    ``plural(2, "collision")`` "2 collisions"."""
+    return f"{n} {word if n == 1 else (words or word + 's')}"
+
+
 #: Dropped messages logged one by one, then one in this many (a flood of bad messages must
 #: not fill the disk with log lines; every one is still counted).
 DROP_LOG_FIRST = 20

@@ -159,3 +159,9 @@ def test_a_config_saved_before_a_setting_was_retired_still_loads(tmp_path):
     path.write_text(json.dumps(data))
     with pytest.raises(ConfigError, match="no_such_setting"):
         load_config(path)
+
+
+def test_counts_read_in_their_number():
+    from rovergate.logs import plural
+    assert plural(1, "collision") == "1 collision" and plural(0, "window") == "0 windows"
+    assert plural(2, "step") == "2 steps" and plural(3, "child", "children") == "3 children"

@@ -42,6 +42,15 @@ def test_process_set_runs_and_matches_in_process(tmp_path: Path):
     for module in ("sim", "mapper", "gate", "planner"):
         log = (tmp_path / "p" / "logs" / f"{module}.log").read_text()
         assert "liveliness token" in log and "mission done" in log, module
+    # What a new user reads: no pybullet banner, no configuration dump, counts in their number,
+    # the bag announced, and the end naming the files to open.
+    said = procs.stderr + procs.stdout
+    assert "pybullet build time" not in said and '"session": {' not in said
+    assert "1 window in 10 steps" in said and "light time 2 steps" in said, said[-3000:]
+    assert "recording every topic into" in said and "0 collisions" in said
+    report = next(line for line in said.splitlines() if "report in" in line)
+    assert "metrics.json, coverage.csv, coverage.png, map_topdown.png" in report, report
+    assert "rovergate replay" in report, report
 
 
 def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path, launch):

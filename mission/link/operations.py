@@ -36,6 +36,7 @@ from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, check_values, from_dict, planner_programs, to_dict
 from rovergate.errors import ConfigError, ReconfigurationFailed, UnknownNameError
 from rovergate.graph import readers
+from rovergate.logs import plural
 from rovergate.module import STOP
 from rovergate.types import CommandAck, MissionStatus, Pose
 
@@ -172,11 +173,12 @@ class Operations:
         c, plan = cfg.contact, self.bridge.plan
         windows = plan.windows_between(0, cfg.steps)
         log.info("link to the ground on %s (written to %s; follow it with `rovergate ground "
-                 "--mission %s`): %d windows in %d steps (first %s), light time %d steps, "
-                 "%g kbit/s; %d items already queued in %s; %s", ", ".join(self.bridge.endpoints),
-                 self.bridge.link_file, control.out, len(windows), cfg.steps,
-                 windows[0] if windows else "none", plan.light_steps, c.downlink_kbps,
-                 len(self.bridge.queue), self.bridge.queue.path,
+                 "--mission %s`): %s in %s (first %s), light time %s, "
+                 "%g kbit/s; %s already queued in %s; %s", ", ".join(self.bridge.endpoints),
+                 self.bridge.link_file, control.out, plural(len(windows), "window"),
+                 plural(cfg.steps, "step"), windows[0] if windows else "none",
+                 plural(plan.light_steps, "step"), c.downlink_kbps,
+                 plural(len(self.bridge.queue), "item"), self.bridge.queue.path,
                  plan.end_of_mission(cfg.steps, c.drain_steps))
         if c.credentials is None:
             log.warning("the ground link is not authenticated (no --contact.credentials), so "
@@ -311,7 +313,8 @@ class Operations:
         self._report_restarts()
         self.bridge.status(status)
         self.bridge.event(status.step, f"mission-{status.state}",
-                          f"coverage {status.coverage:.3f}, {status.collisions} collisions")
+                          f"coverage {status.coverage:.3f}, "
+                          f"{plural(status.collisions, 'collision')}")
         idle = 0
         t0 = time.monotonic()
         while self.bridge.station_connected and not self.bridge.settled and \

@@ -194,9 +194,11 @@ def _open_taps(cfg: MissionConfig, out: Path, resumed: bool = False,
     try:
         if cfg.record:
             from ecosystem.recorder import FlightRecorder, fresh_bag_dir
-            recorder = FlightRecorder(fresh_bag_dir(out, resumed), cfg.session.namespace,
-                                      cfg.record_compression, writer)
+            bag = fresh_bag_dir(out, resumed)
+            recorder = FlightRecorder(bag, cfg.session.namespace, cfg.record_compression, writer)
             taps.taps.append(recorder)
+            log.info("recording every topic into %s (a rosbag2 bag; `--no-record` turns it off)",
+                     bag)
         if cfg.viz:
             from ecosystem.live_view import LiveView
             from rover_sim.catalog import load_scene

@@ -145,6 +145,9 @@ def main(cfg: StudyConfig) -> int:
              len(specs) - len(todo), len(todo),
              f"the Dask cluster at {cfg.cluster}" if cfg.cluster else f"{cfg.workers} workers",
              out)
+    if cfg.filter_reps > cfg.reps:
+        log.info("`learned` and the gates run %d times a start (--filter-reps %d, for Table 2), "
+                 "the other conditions %d (--reps)", cfg.filter_reps, cfg.filter_reps, cfg.reps)
     t0 = time.perf_counter()
     session = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "runs": 0, "wall_s": 0.0,
                "workers": cfg.workers, **({"cluster": cfg.cluster} if cfg.cluster else {})}

@@ -34,9 +34,11 @@ class StudyConfig:
     is always run)."""
     reps: int = 3
     """Repetitions of every condition (repetition r runs with seed r): three at least, so
-    that the placebo row (learned against itself) shows the noise floor."""
+    that the placebo row (learned against itself) shows the noise floor. `learned` and the
+    gates run max(--reps, --filter-reps) times."""
     filter_reps: int = 3
-    """Repetitions of `learned` and `gated` on every start, for Table 2 (at least --reps)."""
+    """Repetitions of `learned` and the gates on every start, for Table 2: they run
+    max(--reps, --filter-reps) times (--filter-reps 0: --reps times)."""
     steps: int = 100
     """Planning steps per run (T; each run records T + 1 coverage values)."""
     platform: tuple[str, ...] = ("flyer",)
