@@ -20,7 +20,7 @@ from mission.runtime.checkpoint import load as load_checkpoint
 from mission.runtime.checkpoint import remove as remove_checkpoint
 from mission.runtime.loop import run_in_process, run_processes
 from mission.scoring.report import write_report
-from planner.planner import PLANNERS, planner_name
+from planner.planner import planner_class, planner_name, planner_names
 from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, check_values, planner_programs, save_config, to_dict
@@ -40,14 +40,13 @@ def check_runnable(cfg: MissionConfig) -> None:
     if cfg.start not in scene.starts:
         raise UnknownNameError(f"scene {scene.name!r} has no start {cfg.start!r}; choose one "
                                f"of: {', '.join(scene.starts)} (--start)")
-    if not cfg.planner.command and planner_name(cfg) not in PLANNERS:
-        raise UnknownNameError(f"unknown planner {cfg.planner.name!r}; choose one of: auto, "
-                               f"{', '.join(PLANNERS)} (--planner.name)")
+    if not cfg.planner.command:
+        planner_class(planner_name(cfg))  # an unknown name, or one that does not load
     check_values(cfg)
     for name in planner_programs(cfg.planner):
-        if name in ("auto", "cmd", *PLANNERS):
-            raise ConfigError(f"--planner.programs: {name!r} is the name of a built-in "
-                              "planner; give the program another name")
+        if name in ("auto", "cmd", *planner_names()):
+            raise ConfigError(f"--planner.programs: {name!r} is the name of a built-in or "
+                              "installed planner; give the program another name")
     mission_checkpoint(cfg)  # a bad --mapper.prediction or checkpoint stops the mission here
     if cfg.in_process and cfg.planner.command:
         raise ConfigError("--planner.command runs a planner program, which needs the "

@@ -9,6 +9,8 @@ checking. A planner must be deterministic for a given seed and step.
 from __future__ import annotations
 
 import abc
+import importlib.metadata
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +30,8 @@ from rovergate.types import (
     Source,
     xyz,
 )
+
+log = logging.getLogger("rovergate.planner")
 
 
 @dataclass
@@ -320,8 +324,54 @@ class BeamPlanner(Planner):
         return found or fallback(step, model, T_map_base, rejected)
 
 
-#: Planner registry: ``--planner.name`` chooses.
+#: The built-in planners: ``--planner.name`` chooses (with those of :data:`PLANNER_GROUP`).
 PLANNERS: dict[str, type[Planner]] = {"beam": BeamPlanner, "greedy": GreedyPlanner}
+
+#: The entry-point group through which a package of your own adds planners, as pytest's
+#: plugins and ROS 2's pluginlib do: in its pyproject.toml,
+#: ``[project.entry-points."rovergate.planners"]`` then ``name = "package.module:Class"``,
+#: a :class:`Planner` subclass. Installed next to rovergate, it is chosen by that name.
+PLANNER_GROUP = "rovergate.planners"
+
+
+def _registered() -> dict[str, importlib.metadata.EntryPoint]:
+    """The installed packages' planners, by name (a built-in name or ``auto`` is not theirs
+    to take: such an entry is left out, with a warning)."""
+    found = {}
+    for ep in importlib.metadata.entry_points(group=PLANNER_GROUP):
+        if ep.name in PLANNERS or ep.name in ("auto", "cmd"):
+            log.warning("planner entry point %r of %s is a built-in name; it is ignored",
+                        ep.name, ep.value)
+        else:
+            found[ep.name] = ep
+    return found
+
+
+def planner_names() -> tuple[str, ...]:
+    """Every planner ``--planner.name`` may choose (``auto`` aside): the built-in ones, then
+    those installed packages register (:data:`PLANNER_GROUP`), without importing them."""
+    return (*PLANNERS, *sorted(_registered()))
+
+
+def planner_class(name: str) -> type[Planner]:
+    """The planner class of ``name``: a built-in one, or the one an installed package
+    registers (imported now). Anything else is refused with the names there are."""
+    if name in PLANNERS:
+        return PLANNERS[name]
+    ep = _registered().get(name)
+    if ep is None:
+        raise UnknownNameError(f"unknown planner {name!r}; choose one of: auto, "
+                               f"{', '.join(planner_names())} (--planner.name)")
+    try:
+        cls = ep.load()
+    except Exception as exc:
+        raise UnknownNameError(f"planner {name!r} ({ep.value}, entry point of "
+                               f"{PLANNER_GROUP}) does not load: {type(exc).__name__}: "
+                               f"{exc}") from exc
+    if not (isinstance(cls, type) and issubclass(cls, Planner)):
+        raise UnknownNameError(f"planner {name!r} ({ep.value}) is not a subclass of "
+                               f"planner.planner.Planner; make it one")
+    return cls
 
 
 def planner_name(cfg: MissionConfig) -> str:
@@ -335,8 +385,4 @@ def planner_name(cfg: MissionConfig) -> str:
 
 def make_planner(cfg: MissionConfig) -> Planner:
     """The configured planner; an unknown name gives the list of valid ones."""
-    name = planner_name(cfg)
-    if name not in PLANNERS:
-        raise UnknownNameError(f"unknown planner {cfg.planner.name!r}; choose one of: "
-                               f"auto, {', '.join(PLANNERS)}")
-    return PLANNERS[name](cfg)
+    return planner_class(planner_name(cfg))(cfg)

@@ -108,16 +108,17 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
 def choose_planner(cfg: MissionConfig, name: str) -> MissionConfig:
     """``planner NAME`` from the ground: a built-in planner, or a program fixed at launch
     (``--planner.programs``). The ground never sends a command line."""
-    from planner.planner import PLANNERS
+    from planner.planner import planner_names
     programs = planner_programs(cfg.planner)
-    if name in ("auto", *PLANNERS):
+    if name in ("auto", *planner_names()):
         planner = dataclasses.replace(cfg.planner, name=name, command="")
     elif name in programs:
         planner = dataclasses.replace(cfg.planner, command=programs[name])
     else:
         why = ("the ground cannot send a command line; " if name == "cmd" else
                f"unknown planner {name!r}; ")
-        raise CommandError(why + "choose one of: " + ", ".join(["auto", *PLANNERS, *programs])
+        names = ", ".join(["auto", *planner_names(), *programs])
+        raise CommandError(why + "choose one of: " + names
                            + (" (programs are fixed at launch: --planner.programs "
                               "NAME=COMMAND)"))
     return dataclasses.replace(cfg, planner=planner)
