@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Literal
 
 from ecosystem.bag_writer import HEADER, BagFile, connections
-from rovergate.keys import Keys
 from rovergate.taps import Payload, tapped_topics
 
 log = logging.getLogger("rovergate.recorder")
@@ -52,11 +51,6 @@ than the mission's memory grown without bound (a disk far slower than the missio
 
 Compression = Literal["zstd", "none"]
 Writer = Literal["thread", "process"]
-
-
-def ros_topic(keys: Keys, topic: str) -> str:
-    """The ROS 2 topic name of a graph topic: ``/`` and its Zenoh key."""
-    return "/" + keys.key(topic)
 
 
 def fresh_bag_dir(out: Path, resumed: bool) -> Path:

@@ -24,8 +24,6 @@ import numpy as np
 from rovergate.geometry import pixels_of
 from rovergate.types import CameraIntrinsics
 
-_CHUNK = 8  # frames projected at once
-
 
 def row_keys(points: np.ndarray) -> np.ndarray:
     """1-D void view of (N, 3) float32 rows: exact keys for matching points across steps."""

@@ -67,6 +67,38 @@ def check_and_decode(topic: str, sample: zenoh.Sample) -> tuple[int, Any]:
     return decode(topic, sample.payload.to_bytes())
 
 
+class Drops:
+    """A thread-safe count of the messages a process dropped, each logged as
+    :func:`rovergate.logs.log_drop` does (the first ones, then one in many)."""
+
+    def __init__(self, log: logging.Logger, what: str = "message") -> None:
+        self.log = log
+        self.what = what
+        self.count = 0
+        self._lock = threading.Lock()
+
+    def drop(self, where: str, why: object) -> None:
+        with self._lock:
+            self.count += 1
+            count = self.count
+        log_drop(self.log, count, self.what, where, why)
+
+
+def decoding(topic: str, key: str, drops: Drops,
+             handle: Callable[[int, Any, zenoh.Sample], None]) -> Callable[[zenoh.Sample], None]:
+    """The subscriber callback of ``topic`` (on ``key``): each sample decoded (its encoding
+    checked first) and handed to ``handle(step, value, sample)``, or, when it does not decode,
+    counted and logged in ``drops`` and nothing else: a bad message loses no good one."""
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            step, value = check_and_decode(topic, sample)
+        except MessageError as exc:
+            drops.drop(key, exc)
+            return
+        handle(step, value, sample)
+    return on_sample
+
+
 class ModuleNode:
     """Session, subscriptions, liveliness and lockstep for one module process."""
 
@@ -78,7 +110,7 @@ class ModuleNode:
         self.keys = Keys(session_cfg.namespace)
         self.inputs = dict(spec.inputs)
         outputs = list(spec.outputs)
-        self.dropped = 0
+        self.drops = Drops(log)
         self._queue: queue.Queue[tuple[str, int, Any]] = queue.Queue()
         self._buffers: dict[str, dict[int, Any]] = {n: {} for n in self.inputs}
         self._lock = threading.Lock()
@@ -105,20 +137,14 @@ class ModuleNode:
 
     # --- receiving ------------------------------------------------------------------------
 
-    def _callback(self, topic: str) -> Callable[[zenoh.Sample], None]:
-        key = self.keys.key(topic)
+    @property
+    def dropped(self) -> int:
+        """Messages this node dropped (they did not decode)."""
+        return self.drops.count
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            try:
-                step, value = check_and_decode(topic, sample)
-            except MessageError as exc:
-                with self._lock:
-                    self.dropped += 1
-                    count = self.dropped
-                log_drop(self.log, count, "message", key, exc)
-                return
-            self._queue.put((topic, step, value))
-        return on_sample
+    def _callback(self, topic: str) -> Callable[[zenoh.Sample], None]:
+        return decoding(topic, self.keys.key(topic), self.drops,
+                        lambda step, value, _: self._queue.put((topic, step, value)))
 
     def _on_mission_liveliness(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:

@@ -344,7 +344,7 @@ def test_bad_planner_programs_are_one_line(entries, why):
 def test_a_planner_program_may_not_take_a_built_in_name():
     cfg = MissionConfig()
     cfg.planner.programs = ("beam=python x.py",)
-    with pytest.raises(ConfigError, match="'beam' is the name of a built-in planner"):
+    with pytest.raises(ConfigError, match="'beam' is the name of a built-in or installed planner"):
         check_runnable(cfg)
 
 

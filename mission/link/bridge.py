@@ -29,6 +29,7 @@ import os
 import re
 import socket
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -43,9 +44,8 @@ from rovergate.access import ground_network
 from rovergate.config import SessionConfig
 from rovergate.errors import ConfigError
 from rovergate.keys import Keys
-from rovergate.logs import log_drop
-from rovergate.messages import MessageError, encode, encode_item
-from rovergate.node import cdr_encoding, check_and_decode
+from rovergate.messages import encode, encode_item
+from rovergate.node import Drops, cdr_encoding, decoding
 from rovergate.session import TlsFiles, free_loopback_port, open_session
 from rovergate.types import (
     SURFACE_DTYPE,
@@ -151,7 +151,7 @@ class GroundBridge:
             congestion_control=zenoh.CongestionControl.BLOCK)
         self._lock = threading.Lock()
         self._heard: list[Any] = []
-        self.dropped = 0
+        self.drops = Drops(log, "message from the ground")
         self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_ground(t))
                       for t in ("downlink_ack", "uplink")]
         self._station = False
@@ -230,19 +230,16 @@ class GroundBridge:
         except (OSError, ValueError):
             pass
 
-    def _on_ground(self, topic: str):
-        def callback(sample: zenoh.Sample) -> None:
-            try:
-                _, value = check_and_decode(topic, sample)
-            except MessageError as exc:
-                with self._lock:
-                    self.dropped += 1
-                    count = self.dropped
-                log_drop(log, count, "message from the ground", self.keys.key(topic), exc)
-                return
+    @property
+    def dropped(self) -> int:
+        """Messages from the ground that did not decode."""
+        return self.drops.count
+
+    def _on_ground(self, topic: str) -> Callable[[zenoh.Sample], None]:
+        def heard(step: int, value: Any, sample: zenoh.Sample) -> None:
             with self._lock:
                 self._heard.append(value)
-        return callback
+        return decoding(topic, self.keys.key(topic), self.drops, heard)
 
     def _on_station(self, sample: zenoh.Sample) -> None:
         with self._lock:
@@ -356,7 +353,7 @@ class GroundBridge:
         self._to_ground = list(snap["to_ground"])
         self._budget = int(snap["budget"])
         self.radiated = int(snap["radiated"])
-        self.dropped = int(snap["dropped"])
+        self.drops.count = int(snap["dropped"])
         self.dropped_reported = int(snap["dropped_reported"])
 
     @property

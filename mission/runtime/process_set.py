@@ -46,10 +46,9 @@ from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
 from rovergate.graph import LAUNCHED, MODULES, producer, stage_module
 from rovergate.keys import Keys
-from rovergate.logs import log_drop
-from rovergate.messages import MessageError, prepare
+from rovergate.messages import prepare
 from rovergate.module import STOP
-from rovergate.node import check_and_decode
+from rovergate.node import Drops, check_and_decode, decoding
 from rovergate.session import open_session
 from rovergate.taps import tapped_topics
 from rovergate.types import MissionStatus, StepTiming
@@ -150,7 +149,7 @@ class ProcessSetTransport:
         watched = set(_MISSION_INPUTS) | {"timing"}
         self.inbox = Inbox(watched - {"timing"})
         self._timings: dict[tuple[str, int], StepTiming] = {}
-        self._dropped = 0
+        self._drops = Drops(log)
         self._restarts_before: list[dict[str, Any]] = []
         self._undoable: list[Reconfiguration] = []
         """Ground reconfigurations in force, oldest first (what a rollback undoes)."""
@@ -245,18 +244,10 @@ class ProcessSetTransport:
     def _on_sample(self, topic: str) -> Callable[[zenoh.Sample], None]:
         journalled = topic in self.journal.topics
 
-        def callback(sample: zenoh.Sample) -> None:
-            try:
-                # Decoded whole even where only the step is needed (the camera's depth,
-                # intrinsics and pose, which the mission only journals): what the journal
-                # keeps is replayed into restarted modules, so it must be valid.
-                step, value = check_and_decode(topic, sample)
-            except MessageError as exc:
-                with self.inbox.cv:
-                    self._dropped += 1
-                    count = self._dropped
-                log_drop(log, count, "message", self.keys.key(topic), exc)
-                return
+        # Decoded whole even where only the step is needed (the camera's depth, intrinsics
+        # and pose, which the mission only journals): what the journal keeps is replayed into
+        # restarted modules, so it must be valid.
+        def callback(step: int, value: Any, sample: zenoh.Sample) -> None:
             payload = sample.payload.to_bytes()
             if self.taps:
                 self.taps.put(topic, payload)
@@ -269,7 +260,7 @@ class ProcessSetTransport:
                 self.inbox.put(topic, step, value)
                 if topic in _PROGRESS:
                     self.supervisor.mark_progress(_PROGRESS[topic], step)
-        return callback
+        return decoding(topic, self.keys.key(topic), self._drops, callback)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -428,7 +419,7 @@ class ProcessSetTransport:
             for t in self._timings.values():
                 module = stages.get(t.module, t.module)  # StepTiming.module holds the stage
                 by_module[module] = max(by_module.get(module, 0), t.dropped_total)
-            return self._dropped + sum(by_module.values())
+            return self._drops.count + sum(by_module.values())
 
     def restarts(self) -> list[dict[str, Any]]:
         return self._restarts_before + [e.as_dict() for e in self.supervisor.events]
@@ -447,7 +438,7 @@ class ProcessSetTransport:
         # Each module counts its drops from 0 again: the counts so far become the mission's.
         self._timings = {(t.module, t.step): dataclasses.replace(t, dropped_total=0)
                          for t in snap["timings"]}
-        self._dropped = int(snap["dropped"])
+        self._drops.count = int(snap["dropped"])
         self._restarts_before = list(snap["restarts"])
         self._configs = int(snap["configs"])
         self._undoable = list(snap["undoable"])
