@@ -105,7 +105,10 @@ def _study_args(args: list[str]) -> list[str]:
 
 def _replay():
     from ecosystem.replay import ReplayConfig, main
-    from rover_sim.catalog import load_scene
+
+    def load_scene(scene):  # imported only when the view shows the scene
+        from rover_sim.catalog import load_scene
+        return load_scene(scene)
     return ReplayConfig, lambda cfg: main(cfg, load_scene)
 
 
