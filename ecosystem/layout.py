@@ -75,7 +75,7 @@ def layout_json(namespace: str = "rover") -> str:
 def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
     """What the layout's panels show, drawn with matplotlib from a recorded mission's bag
     (the last planner map, surface, traversability map, path, depth image, hazard-camera
-    images and status; the coverage of every status): a picture for the README where the
+    images and status; the coverage of every status): a picture for the manual where the
     Foxglove app cannot run."""
     import matplotlib
     matplotlib.use("Agg")

@@ -25,7 +25,7 @@ version with the 33-byte attachment: Jazzy 0.2.4 and later, Rolling 0.6 and late
 The other way is closed: the bridge declares no subscriber, queryable or token a ROS 2 node
 could reach the mission through. A ROS 2 node's command (a ``nav_msgs/msg/Path`` from a ROS 2
 planner) does not reach the rover by this path at all; commands go up only through the ground
-link's authenticated, allowlisted uplink (``rovergate ground``; README, *Security*).
+link's authenticated, allowlisted uplink (``rovergate ground``; docs/security.md).
 
 A publisher's GID is the first 16 bytes of the BLAKE2b hash of its liveliness token (rmw_zenoh
 takes XXH3-128 of the same string): stable for a token, distinct between publishers.

@@ -33,45 +33,64 @@ from rovergate.runtime import tune_allocator
 
 @dataclass(frozen=True)
 class Command:
-    """One subcommand: its help line and what parses and runs it."""
+    """One subcommand: its help line, what reads its arguments into a configuration (a bad
+    flag exits 2 with tyro's message, a bad value raises ConfigError) and what runs that."""
 
     help: str
-    main: Callable[[list[str]], int]
+    parse: Callable[[list[str]], Any]
+    run: Callable[[Any], int]
+
+    def main(self, args: list[str]) -> int:
+        return self.run(self.parse(args))
 
 
-def _run(args: list[str]) -> int:
+def parse(argv: list[str]) -> Any:
+    """What ``rovergate ARGV`` would run, read but not run: the docs' test checks every
+    command the manual writes with it."""
+    if not argv or argv[0] not in COMMANDS:
+        raise ConfigError(f"unknown command {argv[:1]}; choose one of: {', '.join(COMMANDS)}")
+    return COMMANDS[argv[0]].parse(list(argv[1:]))
+
+
+def _parse_run(args: list[str]) -> Any:
     """``rovergate run [MISSION.toml] [flags]``: a mission file first, flags over it."""
     if args and not args[0].startswith("-"):
-        from mission.script import load_script, run_script
+        from mission.script import load_script
         script = load_script(Path(args[0]))
         if any(a == "--config" or a.startswith("--config=") for a in args):
             raise ConfigError("give a mission file or --config FILE, not both")
         cfg = tyro.cli(MissionConfig, args=aliases(args[1:]), default=script.config,
                        prog="rovergate run MISSION.toml", description=COMMANDS["run"].help)
-        return run_script(dataclasses.replace(script, config=cfg))
-    from mission.run import main
-    return main(mission_config("run", args, COMMANDS["run"].help))
+        return dataclasses.replace(script, config=cfg)
+    return mission_config("run", args, COMMANDS["run"].help)
 
 
-def _module(name: str) -> Callable[[list[str]], int]:
-    def main(args: list[str]) -> int:
+def _run(parsed: Any) -> int:
+    if isinstance(parsed, MissionConfig):
+        from mission.run import main
+        return main(parsed)
+    from mission.script import run_script
+    return run_script(parsed)
+
+
+def _module(name: str) -> Command:
+    def run(args: list[str]) -> int:
         from mission.runtime.modules import module_main
         return module_main(name, args, COMMANDS[name].help)
-    return main
+    # The module process reads its own arguments (a launched module's are the mission's).
+    return Command(f"start the {name} module alone (as `rovergate run` does)", list, run)
 
 
-def _typed(prog: str, load: Callable[[], tuple[type, Callable[[Any], int]]],
-           check: Callable[[list[str]], list[str] | None] | None = None
-           ) -> Callable[[list[str]], int]:
+def _typed(prog: str, help: str, load: Callable[[], tuple[type, Callable[[Any], int]]],
+           check: Callable[[list[str]], list[str] | None] | None = None) -> Command:
     """A subcommand whose flags tyro generates from a config class (imported on use).
     ``check`` may refuse the arguments, or return them rewritten."""
-    def main(args: list[str]) -> int:
+    def parse(args: list[str]) -> Any:
         if check is not None:
             args = check(args) or args
-        cls, run = load()
-        return run(tyro.cli(cls, args=args, prog=f"rovergate {prog}",
-                            description=cls.__doc__))
-    return main
+        cls, _ = load()
+        return tyro.cli(cls, args=args, prog=f"rovergate {prog}", description=cls.__doc__)
+    return Command(help, parse, lambda cfg: load()[1](cfg))
 
 
 def _scenes():
@@ -125,25 +144,24 @@ def _ground():
 COMMANDS: dict[str, Command] = {
     "run": Command("run a mission (the process set over Zenoh, or --in-process) and write "
                    "its report; `run MISSION.toml` runs a mission file and its timeline",
-                   _run),
-    **{name: Command(f"start the {name} module alone (as `rovergate run` does)", _module(name))
-       for name in LAUNCHED},
-    "scenes": Command("list the scenes with their sizes and starts (--render DIR: a picture "
-                      "of each)", _typed("scenes", _scenes)),
-    "train": Command("reproduce the shipped occupancy model from nothing (about 35 min on 2 "
-                     "CPU cores)", _typed("train", _train)),
-    "eval-model": Command("precision / recall of the learned occupancy on held-out scenes",
-                          _typed("eval-model", _eval_model)),
-    "replay": Command("publish a recorded mission (OUT/bag) again over Zenoh, on the keys it "
-                      "was recorded from, at its pace or --speed", _typed("replay", _replay)),
-    "study": Command("the paper's controlled study: every (scene, start, condition, "
-                     "repetition) in parallel workers, resumable; writes runs.csv, table1.md, "
-                     "table2.md and plots", _typed("study", _study, _study_args)),
-    "ground": Command("the ground station: shows and records the downlinked telemetry, sends "
-                      "commands (pause, resume, abort, set, condition, planner) up in the "
-                      "next contact window", _typed("ground", _ground)),
-    "credentials": Command("create the ground link's certificates (a CA, the rover's, a "
-                           "station's) for mutual TLS", _typed("credentials", _credentials)),
+                   _parse_run, _run),
+    **{name: _module(name) for name in LAUNCHED},
+    "scenes": _typed("scenes", "list the scenes with their sizes and starts (--render DIR: a "
+                     "picture of each)", _scenes),
+    "train": _typed("train", "reproduce the shipped occupancy model from nothing (about 35 min "
+                    "on 2 CPU cores)", _train),
+    "eval-model": _typed("eval-model", "precision / recall of the learned occupancy on "
+                         "held-out scenes", _eval_model),
+    "replay": _typed("replay", "publish a recorded mission (OUT/bag) again over Zenoh, on the "
+                     "keys it was recorded from, at its pace or --speed", _replay),
+    "study": _typed("study", "the paper's controlled study: every (scene, start, condition, "
+                    "repetition) in parallel workers, resumable; writes runs.csv, table1.md, "
+                    "table2.md and plots", _study, _study_args),
+    "ground": _typed("ground", "the ground station: shows and records the downlinked "
+                     "telemetry, sends commands (pause, resume, abort, set, condition, "
+                     "planner) up in the next contact window", _ground),
+    "credentials": _typed("credentials", "create the ground link's certificates (a CA, the "
+                          "rover's, a station's) for mutual TLS", _credentials),
 }
 
 

@@ -376,8 +376,8 @@ def planner_class(name: str) -> type[Planner]:
 
 def planner_name(cfg: MissionConfig) -> str:
     """The planner a mission runs: ``auto`` is the beam on the flyer and the greedy planner on
-    the rover (which the beam does not beat there: README, *Why `auto` gives the rover the
-    greedy planner*)."""
+    the rover (which the beam does not beat there: docs/performance.md, *Why `auto` gives the rover
+    the greedy planner*)."""
     if cfg.planner.name == "auto":
         return "beam" if cfg.platform == "flyer" else "greedy"
     return cfg.planner.name

@@ -143,7 +143,8 @@ class HazcamConfig:
     """Also integrate their frames into the observed surface S_t and the learned model's
     occupancy grid (so into coverage and the model's input). Off (``--hazcam.no-feed-map``):
     they feed the traversability layer only, as the paper's single-camera setting has it; on
-    the stuck starts of issue 26 the learned map then walls the rover in (README, "Driving").
+    the stuck starts of issue 26 the learned map then walls the rover in
+    (docs/platforms.md, "Driving").
     The gate's exposure counts and the points' views stay the mast camera's either way."""
 
 
@@ -249,8 +250,8 @@ class MapperConfig:
     """Occupancy model weights. Empty: the checkpoint shipped in the package."""
     precision: str = "float32"
     """The model's arithmetic: float32 (the trained model's own; the same on every CPU as far
-    as the CPU's kernels allow, see the README) or bfloat16 (faster only on a CPU with native
-    bfloat16, AVX512-BF16 or AMX; about one covered voxel in 13,000 lands on the other side
+    as the CPU's kernels allow, see docs/learned-model.md) or bfloat16 (faster only on a CPU with
+    native bfloat16, AVX512-BF16 or AMX; about one covered voxel in 13,000 lands on the other side
     of 0.5; many times slower in torch without native support, and refused by openvino)."""
     engine: str = "openvino"
     """The runtime of the model's pass: openvino (the network compiled for this CPU, 1.8 to 2
@@ -305,7 +306,7 @@ class PlannerConfig:
     name: str = "auto"
     """Planner: beam (the paper's long-horizon search, MAGICIAN-style), greedy (the best next
     view only), or auto: the beam on the flyer, greedy on the rover (where the beam does not
-    beat it: see the README's *Why `auto` gives the rover the greedy planner*)."""
+    beat it: see docs/performance.md, *Why `auto` gives the rover the greedy planner*)."""
     n_candidates: int = 32
     """Candidate poses sampled each step within the motion budget (the beam's first level)."""
     beam_width: int = 3
@@ -338,7 +339,7 @@ class PlannerConfig:
     route_blocked: bool = False
     """Beam: also keep a first motion with no straight way there when OMPL reaches it within
     the budget (at most max_attempts such motions a step). Off by default: on the rover it
-    helps some scenes and hurts others (README, Roadmap), and on the flyer it would change
+    helps some scenes and hurts others (docs/roadmap.md), and on the flyer it would change
     the published study's runs."""
     ompl_max_checks: int = 3000
     """State-validity checks one OMPL query may spend (a count, not a time, for determinism)."""
@@ -468,7 +469,7 @@ class MissionConfig:
     --no-record turns it off (a study's runs are not recorded unless it is given --record)."""
     record_compression: Literal["none", "zstd"] = "none"
     """Compression of the bag's MCAP chunks: none, or zstd (a fifth smaller; its writer
-    thread then takes more of the CPU the loop needs: README, "The flight recorder and
+    thread then takes more of the CPU the loop needs: docs/running.md, "The flight recorder and
     replay")."""
     viz: bool = False
     """Serve the mission live to Foxglove (ecosystem/live_view.py): a Foxglove WebSocket

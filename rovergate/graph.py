@@ -6,7 +6,7 @@ the keys (:class:`rovergate.keys.Keys`), each node's subscriptions and publisher
 (:class:`rovergate.node.ModuleNode`), the in-process transport's routing
 (:mod:`mission.runtime.transport`), the mission's inbox and journal (which topics it watches,
 keeps for every step, or keeps for the last few), which module reports each timing stage, what a
-restarted module replays, and the README's topic table (a test checks it against
+restarted module replays, and the topic table of docs/architecture.md (a test checks it against
 :func:`topic_table`). Adding a topic is one entry in :data:`TOPICS` plus its codec in
 :mod:`rovergate.messages`; wiring it is one name in a module's ``inputs`` or ``outputs``.
 
@@ -42,7 +42,7 @@ class Topic:
     kind: Kind = "topic"
 
 
-#: Every topic of the system. The README's topic table lists the same entries.
+#: Every topic of the system. docs/architecture.md's topic table lists the same entries.
 TOPICS: dict[str, Topic] = {
     "depth": Topic("sensor/depth", "sensor_msgs/msg/Image",
                    "depth in metres (32FC1), REP 117: +Inf where nothing is within the "
@@ -286,7 +286,7 @@ _EDGE: dict[str, tuple[str, str]] = {
 
 
 def topic_table(namespace: str = "rover", ground_namespace: str = "ground") -> str:
-    """The README's topic table (markdown), generated from :data:`TOPICS` and
+    """The topic table of docs/architecture.md (markdown), generated from :data:`TOPICS` and
     :data:`MODULES`."""
     rows = ["| key | type | from → to | what |", "|---|---|---|---|"]
     for name, t in TOPICS.items():

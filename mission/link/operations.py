@@ -184,7 +184,7 @@ class Operations:
         if c.credentials is None:
             log.warning("the ground link is not authenticated (no --contact.credentials), so "
                         "it listens on loopback only: any process on this machine can command "
-                        "the rover (README, Security)")
+                        "the rover (docs/security.md)")
         else:
             log.info("the ground link is mutual TLS with the credentials in %s: only a "
                      "station whose certificate names %s may command", c.credentials,

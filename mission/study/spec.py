@@ -47,7 +47,7 @@ class StudyConfig:
     (see the module docstring)."""
     profiles: tuple[str, ...] = ("nominal",)
     """Sensing profiles: nominal, degraded, drift, drift+degraded (SENSING_PROFILES; levels
-    in the README). `nominal` runs the --mission.sensing settings as given; the others set
+    in docs/study.md). `nominal` runs the --mission.sensing settings as given; the others set
     the fields they name over them."""
     preset: str = ""
     """A named design (PRESETS): `validation` is the paper's required validation (issue 16).
@@ -59,7 +59,7 @@ class StudyConfig:
     """Run on a Dask distributed cluster instead of local workers: the scheduler's address,
     e.g. tcp://10.0.0.5:8786 (`dask scheduler` prints it; start `dask worker ADDRESS
     --nthreads 1` on each machine, with rovergate installed). Same runs, same runs.csv, same
-    resumption; see mission/study/cluster.py and the README."""
+    resumption; see mission/study/cluster.py and docs/running.md."""
     torch_threads: int = 1
     """Torch threads per worker."""
     out: Path = Path("runs/study")
@@ -70,8 +70,8 @@ class StudyConfig:
     """Show a progress bar with an ETA."""
     record: bool = False
     """Record every run's messages into OUT/runs/<id>/bag (`rovergate replay` plays one).
-    Off by default: a bag holds about 150 MB per 100 steps (README, "The flight recorder and
-    replay"), which over a study's hundreds of runs is tens of GB."""
+    Off by default: a bag holds about 165 MB per 100 steps (docs/running.md, "The flight
+    recorder and replay"), which over a study's hundreds of runs is tens of GB."""
     mission: MissionConfig = field(default_factory=MissionConfig)
     """Every other mission setting (sensing, planner, gate, ...), as `rovergate run` takes
     them. The study sets the scene, start, condition, seed, steps, platform, out, in-process
