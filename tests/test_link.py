@@ -622,6 +622,14 @@ def test_condition_change_pause_resume_and_abort_from_the_ground(tmp_path: Path)
     assert not any(predicted[:step]) and any(predicted[step:])  # the model runs from then on
     assert held == paused["step"]  # nothing moved while paused
     assert [r["state"] for r in rows if r["kind"] == "status"][-1] == "aborted"
+    # The report says both conditions, and the aborted mission's map shows what it saw (it
+    # was empty when the surface was kept only at the last step): an empty map has a few
+    # hundred colours, the surface coloured by height tens of thousands.
+    assert metrics["conditions"] == [[0, "obs"], [step, "gated"]]
+    import matplotlib.image
+    import numpy as np
+    picture = matplotlib.image.imread(m.out / "map_topdown.png")[..., :3].reshape(-1, 3)
+    assert len(np.unique((picture * 255).astype(np.uint8), axis=0)) > 2000
 
 
 @pytest.mark.e2e

@@ -60,6 +60,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
     first = resume.step if resume else 0
     ops = None
     condition = resume.condition if resume else cfg.condition
+    surface_xyz = None  # the last step's observed surface, for the report's top-down map
     try:
         ops = operations_factory() if operations_factory else None
         if ops and resume and resume.operations:
@@ -97,6 +98,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 # A pause or a restart at the boundary is not the loop's step time.
                 t_step += time.perf_counter() - t_boundary
                 condition = ops.cfg.condition  # a ground command may have changed it
+            if not record.conditions or record.conditions[-1][1] != condition:
+                record.conditions.append((t, condition))
             cov = record.coverage[-1] if record.coverage else 0.0
             transport.tick(MissionStatus(t, cfg.steps, "running", condition, cov, collisions))
             if t > 0:
@@ -145,14 +148,15 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
             record.base_xy.append((float(base.position[0]), float(base.position[1])))
             record.base_z.append(float(base.position[2]))
             previous_base = base
-            record.coverage.append(evaluator.update(xyz(surface)))
+            surface_xyz = xyz(surface)
+            record.coverage.append(evaluator.update(surface_xyz))
             if ops:
                 ops.after_step(MissionStatus(t, cfg.steps, "running", condition,
                                              record.coverage[-1], collisions), base, surface)
             if on_step:
                 on_step(t, record.coverage[-1])
             if t == cfg.steps:
-                record.surface_xyz = xyz(surface)
+                record.surface_xyz = surface_xyz
             elif checkpoint is not None:
                 record.wall_s = wall_before + time.perf_counter() - t_start
                 save_checkpoint(LoopState(
@@ -162,6 +166,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         else:
             state = "done"
     finally:
+        if surface_xyz is not None and not len(record.surface_xyz):
+            record.surface_xyz = surface_xyz  # an aborted mission's map shows what it saw
         final = MissionStatus(len(record.coverage) - 1 if record.coverage else 0, cfg.steps,
                               "done" if state == "done" else "aborted", condition,
                               record.coverage[-1] if record.coverage else 0.0, collisions)

@@ -48,6 +48,9 @@ class MissionRecord:
     planner_predicted: list[int] = field(default_factory=list)
     """Predicted points in the planner-facing map at each step 0..T-1."""
     surface_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    conditions: list[tuple[int, str]] = field(default_factory=list)
+    """The condition the mission ran under, as (first step, condition): more than one entry
+    when a ground command changed it during the mission."""
     restarts: list[dict] = field(default_factory=list)
     """Modules that died and were restarted (process set only): module, step, reason, and
     the seconds from the death to the module's token and to the loop resuming."""

@@ -21,6 +21,15 @@ def _num(v: float | None) -> str:
     return "" if v is None else repr(v)
 
 
+def _conditions(cfg: MissionConfig, record: MissionRecord) -> str:
+    """The condition a run ran under, or each with the step it began at when a ground command
+    changed it (``obs, gated from step 40``)."""
+    if len(record.conditions) < 2:
+        return record.conditions[0][1] if record.conditions else cfg.condition
+    first, *rest = record.conditions
+    return ", ".join([first[1], *(f"{c} from step {s}" for s, c in rest)])
+
+
 def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bool = True
                  ) -> dict:
     """Write every output file of a run into ``out`` (``plots``: with its two pictures);
@@ -29,6 +38,7 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
     metrics = record.metrics()
     metrics.update(scene=cfg.scene.name, platform=cfg.platform, start=cfg.start, seed=cfg.seed,
                    condition=cfg.condition, planner=planner_name(cfg),
+                   conditions=[list(c) for c in record.conditions],
                    d_scene_m=cfg.scene.d_scene_m,
                    tau_m=cfg.tau_m)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
@@ -55,7 +65,7 @@ def write_report(cfg: MissionConfig, record: MissionRecord, out: Path, plots: bo
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(range(len(record.coverage)), record.coverage, lw=2)
     ax.set(xlabel="planning step", ylabel="surface coverage", ylim=(0, 1),
-           title=f"{cfg.scene.name}/{cfg.start}, {cfg.condition}: final "
+           title=f"{cfg.scene.name}/{cfg.start}, {_conditions(cfg, record)}: final "
                  f"{metrics['final_coverage']:.3f}, AUC {metrics['auc']:.3f}")
     ax.grid(alpha=0.3)
     fig.tight_layout()
