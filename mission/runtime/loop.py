@@ -155,9 +155,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                                              record.coverage[-1], collisions), base, surface)
             if on_step:
                 on_step(t, record.coverage[-1])
-            if t == cfg.steps:
-                record.surface_xyz = surface_xyz
-            elif checkpoint is not None:
+            if t < cfg.steps and checkpoint is not None:
                 record.wall_s = wall_before + time.perf_counter() - t_start
                 save_checkpoint(LoopState(
                     t + 1, record, collisions, previous_base, condition,
@@ -166,8 +164,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         else:
             state = "done"
     finally:
-        if surface_xyz is not None and not len(record.surface_xyz):
-            record.surface_xyz = surface_xyz  # an aborted mission's map shows what it saw
+        if surface_xyz is not None:  # the last step's, done or aborted: the top-down map
+            record.surface_xyz = surface_xyz
         final = MissionStatus(len(record.coverage) - 1 if record.coverage else 0, cfg.steps,
                               "done" if state == "done" else "aborted", condition,
                               record.coverage[-1] if record.coverage else 0.0, collisions)
