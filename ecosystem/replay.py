@@ -41,11 +41,11 @@ class ReplayConfig:
     --record)."""
     speed: float = 1.0
     """Pace relative to the recording (2: twice as fast); 0 publishes as fast as it can."""
-    wait_subscriber_s: float = 0.0
+    wait_subscriber_s: float = 60.0
     """Before the first message, wait up to this many seconds for a subscriber to any of the
     bag's keys, a Foxglove client's subscription with --viz, or a ROS 2 subscriber with
-    --ros2 (0: start at once; what no one subscribes to yet is lost, as on a live
-    mission)."""
+    --ros2, and fail if none comes (0: start at once; what no one subscribes to yet is lost,
+    as on a live mission)."""
     topics: tuple[str, ...] = ()
     """Only these ROS 2 topics (e.g. /rover/map/occupancy/planner); empty: all."""
     viz: bool = False
@@ -190,7 +190,11 @@ def _await_subscriber(publishers, viewers, timeout_s: float, stop) -> None:
     """Wait for a Zenoh subscriber of a publisher, or a tap that is watched (a Foxglove
     client's subscription, a ROS 2 subscriber)."""
     if timeout_s <= 0:
+        log.info("starting at once (--wait-subscriber-s 0): a subscriber that comes later "
+                 "misses what was sent before it")
         return
+    log.info("waiting up to %.0f s for a subscriber before the first message "
+             "(--wait-subscriber-s 0 starts at once)", timeout_s)
     deadline = time.monotonic() + timeout_s
     while not (any(p.matching_status.matching for p in publishers)
                or any(watched() for watched in viewers)):

@@ -165,6 +165,6 @@ def main(cfg: MissionConfig, on_link: Callable[[], None] | None = None) -> int:
     files = ["metrics.json", "coverage.csv", "coverage.png", "map_topdown.png", "config.json"]
     log.info("report in %s: %s%s", out, ", ".join(f for f in files if (out / f).exists()),
              f"; the bag in {record.recording['path']} (`rovergate replay "
-             f"{record.recording['path']}`)" if record.recording else "")
+             f"{record.recording['path']} --viz` plays it to Foxglove)" if record.recording else "")
     logging.shutdown()
     return 0

@@ -284,3 +284,16 @@ def test_a_recorder_thread_that_cannot_write_says_so_in_its_stats(tmp_path: Path
 def test_replay_that_would_reach_no_one_is_refused(recorded: Path):
     r = _replay(str(recorded / "bag"))
     assert r.returncode == 2 and "would reach no one" in r.stderr
+
+
+def test_a_replay_waits_for_its_first_subscriber_by_default_and_says_when_none_came():
+    import threading
+
+    from ecosystem.replay import ReplayConfig, _await_subscriber
+    from rovergate.config import ConfigError
+    assert ReplayConfig(bag=Path("bag")).wait_subscriber_s >= 30  # a late subscriber misses nothing
+    watched = threading.Event()
+    with pytest.raises(ConfigError, match=r"no subscriber within 0 s \(--wait-subscriber-s\)"):
+        _await_subscriber([], [watched.is_set], 0.2, threading.Event())
+    watched.set()
+    _await_subscriber([], [watched.is_set], 0.2, threading.Event())  # returns: one is watching
