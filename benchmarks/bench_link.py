@@ -129,7 +129,7 @@ def bench_resume(tmp: Path, rounds: int) -> None:
     ``rovergate run --out OUT --resume`` to the loop running again, and check the coverage
     against an uninterrupted mission's."""
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from conftest import Mission, StatusWatcher, wait_gone
+    from conftest import RovergateProcess, StatusWatcher, wait_gone
 
     from rovergate.session import free_loopback_port
     base = ["--steps", "20", "--condition", "gated", "--no-progress", "--contact.no-enabled"]
@@ -139,7 +139,8 @@ def bench_resume(tmp: Path, rounds: int) -> None:
     to_loop, to_end, same = [], [], []
     for r in range(rounds):
         port, out = free_loopback_port(), tmp / f"resume-{r}"
-        first = Mission(["run", *base, "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}"])
+        first = RovergateProcess(["run", *base, "--out", str(out),
+                                  "--listen", f"tcp/127.0.0.1:{port}"])
         pids = [first.pid(m) for m in ("sim", "mapper", "gate", "planner")]
         watcher = StatusWatcher(port)
         try:
@@ -151,7 +152,7 @@ def bench_resume(tmp: Path, rounds: int) -> None:
         for pid in pids:
             wait_gone(pid, 60)
         t0 = time.perf_counter()
-        resumed = Mission(["run", "--out", str(out), "--resume", "--no-progress"])
+        resumed = RovergateProcess(["run", "--out", str(out), "--resume", "--no-progress"])
         resumed.wait_for_line(r"resumed at step \d+", 300)
         to_loop.append(time.perf_counter() - t0)
         if resumed.finish(600) != 0:

@@ -35,7 +35,7 @@ def main() -> None:
     tune_allocator()
     logging.basicConfig(level=logging.ERROR)
     from mission.runtime.loop import run_in_process
-    from planner.node import PlannerNode
+    from planner.logic import PlannerLogic
     from planner.traversability import TerrainMap
     from rover_sim.catalog import resolve_scene
     from rovergate.config import MissionConfig
@@ -45,17 +45,17 @@ def main() -> None:
     cfg.scene.name = args.scene
     resolve_scene(cfg.scene)
     kept: list[tuple[int, dict]] = []
-    restore = PlannerNode.restore
+    restore = PlannerLogic.restore
 
     def keep(self, step, inputs):
         kept.append((step, dict(inputs)))
         return restore(self, step, inputs)
 
-    PlannerNode.restore = keep
+    PlannerLogic.restore = keep
     try:
         run_in_process(cfg)
     finally:
-        PlannerNode.restore = restore
+        PlannerLogic.restore = restore
     add, prep = [], []
     for _ in range(args.repeats):
         terrain = TerrainMap(cfg)

@@ -1,7 +1,7 @@
 """The contract between a module's logic and whatever carries its messages.
 
-A module's logic (``rover_sim/node.py``, ``mapper/node.py``, ``gate/node.py``,
-``planner/node.py``) implements :class:`ModuleLogic`: given the inputs of one step, as declared
+A module's logic (``rover_sim/logic.py``, ``mapper/logic.py``, ``gate/logic.py``,
+``planner/logic.py``) implements :class:`ModuleLogic`: given the inputs of one step, as declared
 for it in :mod:`rovergate.graph`, it returns the messages it publishes and the time each stage
 took. It never touches a transport. Two transports drive the same logic: direct calls in one
 process (:class:`mission.runtime.transport.InProcessTransport`), and Zenoh, one OS process per

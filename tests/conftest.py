@@ -85,7 +85,7 @@ class Waiter:
         return value
 
 
-class Mission:
+class RovergateProcess:
     """A ``rovergate ...`` process whose stderr is read line by line as it comes."""
 
     def __init__(self, args: list[str], stdin: bool = False, new_session: bool = False
@@ -175,14 +175,14 @@ def wait_gone(pid: int, timeout_s: float) -> bool:
 
 
 @pytest.fixture
-def launch() -> Iterator[Callable[..., Mission]]:
+def launch() -> Iterator[Callable[..., RovergateProcess]]:
     """Start ``rovergate`` processes (``launch("run", "--steps", "5", ...)``); any still
     running at the end of the test is killed."""
-    started: list[Mission] = []
+    started: list[RovergateProcess] = []
 
-    def start(*args: str, stdin: bool = False, new_session: bool = False) -> Mission:
+    def start(*args: str, stdin: bool = False, new_session: bool = False) -> RovergateProcess:
         flags = [*args, "--no-progress"] if args and args[0] in ("run", "study") else list(args)
-        m = Mission(flags, stdin=stdin, new_session=new_session)
+        m = RovergateProcess(flags, stdin=stdin, new_session=new_session)
         started.append(m)
         return m
     yield start

@@ -59,8 +59,8 @@ def test_a_broken_declaration_is_refused(monkeypatch):
 
 
 def test_module_logic_loads_without_zenoh():
-    code = ("import gate.gate, gate.node, mapper.mapper, mapper.node, planner.planner, "
-            "planner.node, rover_sim.sim, rover_sim.node, mission.scoring.coverage, "
+    code = ("import gate.gate, gate.logic, mapper.mapper, mapper.logic, planner.planner, "
+            "planner.logic, rover_sim.sim, rover_sim.logic, mission.scoring.coverage, "
             "mission.scoring.metrics, mission.runtime.loop, mission.runtime.transport, "
             "mission.runtime.supervisor, rovergate.config, sys; "
             "assert 'zenoh' not in sys.modules, 'zenoh was imported'")

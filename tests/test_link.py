@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import tyro
 import zenoh
-from conftest import ROVERGATE, Mission, StatusWatcher, run_cli
+from conftest import ROVERGATE, RovergateProcess, StatusWatcher, run_cli
 
 from mission.link.bridge import LINK_FILE, check_ground_endpoints, loopback
 from mission.link.contact import ContactPlan, ContactPlanError
@@ -365,10 +365,10 @@ class LinkedMission:
         self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
         self.credentials = create(CredentialsConfig(out=tmp_path / "credentials"))
         # The ground link takes a free port of its own and says which in OUT/ground.json.
-        self.mission = Mission(["run", "--steps", str(steps), "--no-progress", "--out",
+        self.mission = RovergateProcess(["run", "--steps", str(steps), "--no-progress", "--out",
                                 str(self.out), "--listen", f"tcp/127.0.0.1:{self.port}",
                                 "--contact.credentials", str(self.credentials["rover"]), *flags])
-        self.ground: Mission | None = None
+        self.ground: RovergateProcess | None = None
         self.watcher: StatusWatcher | None = None
         try:
             # Logged once OUT/ground.json is written.
@@ -379,7 +379,7 @@ class LinkedMission:
             assert f"link to the ground on {link['endpoints'][0]} " in line
             assert link["endpoints"][0].startswith("tls/127.0.0.1:"), link
             self.watcher = StatusWatcher(self.port)
-            self.ground = Mission(["ground", "--mission", str(self.out), "--out",
+            self.ground = RovergateProcess(["ground", "--mission", str(self.out), "--out",
                                    str(self.ground_out), "--credentials",
                                    str(self.credentials["station"])], stdin=True)
         except BaseException:
@@ -693,7 +693,7 @@ def test_without_the_missions_credentials_no_command_reaches_the_rover(tmp_path:
     mallory = create(CredentialsConfig(out=tmp_path / "mallory", ca=creds["ca"],
                                        station_name="mallory"))
     steps, out, marker = 20, tmp_path / "m", tmp_path / "FILE"
-    mission = Mission(["run", "--steps", str(steps), "--no-progress", "--out", str(out),
+    mission = RovergateProcess(["run", "--steps", str(steps), "--no-progress", "--out", str(out),
                        "--contact.credentials", str(creds["rover"]),
                        "--contact.windows", f"0+{steps}"])
     keys = Keys("ground")

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from conftest import Mission, StatusWatcher, run_cli
+from conftest import RovergateProcess, StatusWatcher, run_cli
 from test_messages import VALUES
 
 from rovergate.config import SessionConfig
@@ -59,7 +59,7 @@ def test_ten_thousand_malformed_messages_change_no_number(tmp_path: Path):
     keys = Keys("rover")
     topics = sorted({i.topic for m in MODULES.values() for i in m.inputs.values()
                      if i.topic in VALUES})
-    mission = Mission(["run", "--steps", str(steps), "--no-progress", "--out",
+    mission = RovergateProcess(["run", "--steps", str(steps), "--no-progress", "--out",
                        str(tmp_path / "p"), "--listen", f"tcp/127.0.0.1:{port}",
                        "--contact.no-enabled"])
     inside = mission.wait_for_line(r"the modules connect to (unixsock-stream/\S+);").group(1)
@@ -105,7 +105,7 @@ def test_a_remote_client_cannot_drive_the_mission(tmp_path: Path):
     steps = 12
     port = free_loopback_port()
     keys = Keys("rover")
-    mission = Mission(["run", "--steps", str(steps), "--no-progress", "--out",
+    mission = RovergateProcess(["run", "--steps", str(steps), "--no-progress", "--out",
                        str(tmp_path / "p"), "--listen", f"tcp/127.0.0.1:{port}",
                        "--contact.no-enabled"])
     mission.wait_for_line(r"started sim \(pid")  # its session listens before it starts any

@@ -23,10 +23,10 @@ from rovergate.module import STOP, Ask, ModuleLogic
 #: The logic class of each launched module ("package.module:Class"), imported on use so that
 #: a process imports only its own module's libraries.
 LOGIC: dict[str, str] = {
-    "sim": "rover_sim.node:SimNode",
-    "mapper": "mapper.node:MapperNode",
-    "gate": "gate.node:GateNode",
-    "planner": "planner.node:PlannerNode",
+    "sim": "rover_sim.logic:SimLogic",
+    "mapper": "mapper.logic:MapperLogic",
+    "gate": "gate.logic:GateLogic",
+    "planner": "planner.logic:PlannerLogic",
 }
 
 

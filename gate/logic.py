@@ -17,7 +17,7 @@ from rovergate.types import MapperOutput, xyz
 log = logging.getLogger("rovergate.gate")
 
 
-class GateNode(LogicDefaults):
+class GateLogic(LogicDefaults):
     """:class:`rovergate.module.ModuleLogic` of the gate."""
 
     spec: ClassVar[Module] = MODULES["gate"]

@@ -13,7 +13,7 @@ from rovergate.module import Ask, LogicDefaults, StepOutput
 from rovergate.types import SensorFrame
 
 
-class MapperNode(LogicDefaults):
+class MapperLogic(LogicDefaults):
     """:class:`rovergate.module.ModuleLogic` of the mapper."""
 
     spec: ClassVar[Module] = MODULES["mapper"]

@@ -17,7 +17,7 @@ from rovergate.module import Ask, StepOutput
 from rovergate.types import XYZ_DTYPE, CameraIntrinsics, PoseWithCovariance, make_cloud
 
 
-class SimNode:
+class SimLogic:
     """:class:`rovergate.module.ModuleLogic` of the simulator."""
 
     spec: ClassVar[Module] = MODULES["sim"]

@@ -21,7 +21,7 @@ from rovergate.types import TraversabilityGrid, TraverseReport
 log = logging.getLogger("rovergate.planner")
 
 
-class PlannerNode(LogicDefaults):
+class PlannerLogic(LogicDefaults):
     """:class:`rovergate.module.ModuleLogic` of the planner. Its random draws are seeded by
     seed and step; its state is what the platform learnt by moving: the flyer's known free
     space (carved from every frame so far and where the flyer has been), the rover's
