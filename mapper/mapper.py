@@ -86,7 +86,7 @@ class Mapper:
     def for_mission(cls, cfg: MissionConfig) -> Mapper:
         return cls(cfg.mapper, cfg.scene.bounds_m, mission_checkpoint(cfg),
                    cfg.mapper.precision, cfg.mapper.engine,
-                   cfg.hazcam if cfg.hazcam.feed_map and cfg.platform == "rover" else None)
+                   cfg.hazcam if cfg.hazcam.feed_map and cfg.vehicle.hazcams else None)
 
     def integrate(self, frame: SensorFrame) -> None:
         """Take one frame into S_t, the grid and the model's prediction, without reading the

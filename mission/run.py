@@ -25,15 +25,15 @@ from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, check_values, planner_programs, save_config, to_dict
 from rovergate.errors import ConfigError, MissionFailed, UnknownNameError
-from rovergate.geometry import check_platform
 from rovergate.logs import init_logging, plural
+from rovergate.platforms import get_platform
 
 
 def check_runnable(cfg: MissionConfig) -> None:
     """Refuse, before anything starts, a mission that cannot run as configured: every name
     resolves, every count and limit is in range, the checkpoint loads, the contact plan is
     valid. Raises :class:`ConfigError` (or :class:`UnknownNameError`) with one line."""
-    check_platform(cfg.platform)
+    get_platform(cfg.platform)
     get_condition(cfg.condition)
     resolve_scene(cfg.scene)
     scene = load_scene(cfg.scene)

@@ -38,12 +38,12 @@ class PlannerLogic(LogicDefaults):
         self.contacts: list[tuple[float, float, float]] = []
         """Where the platform touched the scene so far (its bumper): obstacles from now on."""
         self.free = None
-        if cfg.platform == "flyer" and cfg.planner.known_free_only:
+        if cfg.vehicle.flies and cfg.planner.known_free_only:
             b, s = cfg.scene.bounds_m, cfg.sensor
             lo, hi = flyer_altitudes(cfg)
             self.free = FreeSpace((b[0], b[1], lo, b[3], b[4], hi),
                                   cfg.planner.free_voxel_m, s.min_range_m, s.max_range_m)
-        self.terrain = (TerrainMap(cfg) if cfg.platform == "rover" and cfg.traverse.enabled
+        self.terrain = (TerrainMap(cfg) if not cfg.vehicle.flies and cfg.traverse.enabled
                         else None)
 
     def restore(self, step: int, inputs: dict[str, Any]) -> None:

@@ -162,7 +162,7 @@ def best_feasible(cfg: MissionConfig, step: int, model: MotionModel, field: Gain
         return None
     gains = np.array([field.gain(field.visible(model.camera(c))) for c in candidates],
                      dtype=np.int64)
-    here = np.array(model.current[:3 if cfg.platform == "flyer" else 2])
+    here = np.array(model.current[:cfg.vehicle.dims])
     travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
     order = np.lexsort((travel, -gains, model.avoid(candidates)))
     attempts = len(order) if model.stale([model.current])[0] else pc.max_attempts
@@ -238,7 +238,7 @@ class BeamPlanner(Planner):
              terrain: TerrainMap | None = None) -> PlanResult:
         cfg, pc = self.cfg, self.cfg.planner
         model, rng, field = self._setup(step, occupancy, T_map_base, free, contacts, terrain)
-        dims = 3 if cfg.platform == "flyer" else 2
+        dims = cfg.vehicle.dims
 
         def extend(nodes: list[_Trajectory], n: int) -> list[_Trajectory]:
             """The children of ``nodes``: ``n`` samples from the end of each, in turn, those
@@ -375,11 +375,11 @@ def planner_class(name: str) -> type[Planner]:
 
 
 def planner_name(cfg: MissionConfig) -> str:
-    """The planner a mission runs: ``auto`` is the beam on the flyer and the greedy planner on
-    the rover (which the beam does not beat there: docs/performance.md, *Why `auto` gives the rover
-    the greedy planner*)."""
+    """The planner a mission runs: ``auto`` is the platform's ``default_planner``, the beam on
+    the flyer and the greedy planner on the rover (which the beam does not beat there:
+    docs/performance.md, *Why `auto` gives the rover the greedy planner*)."""
     if cfg.planner.name == "auto":
-        return "beam" if cfg.platform == "flyer" else "greedy"
+        return cfg.vehicle.default_planner
     return cfg.planner.name
 
 

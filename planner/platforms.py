@@ -422,9 +422,11 @@ class RoverModel(MotionModel):
 class FlyerModel(MotionModel):
     def __init__(self, cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
                  predicted: np.ndarray | None = None, free: FreeSpace | None = None,
-                 contacts: np.ndarray | None = None) -> None:
-        # Self filter: nothing the map holds inside the sphere where the flyer is can be real
-        # (the camera cannot see within its minimum range; a prediction can land there).
+                 contacts: np.ndarray | None = None, terrain: TerrainMap | None = None
+                 ) -> None:
+        # (A flyer reads no terrain layer.) Self filter: nothing the map holds inside the sphere
+        # where the flyer is can be real (the camera cannot see within its minimum range; a
+        # prediction can land there).
         keep = (np.sum((points - T_map_base.position) ** 2, axis=1)
                 > cfg.flyer.radius_m ** 2) if len(points) else np.ones(0, dtype=bool)
         points = points[keep]
@@ -562,6 +564,10 @@ class FlyerModel(MotionModel):
         return True  # turning in place moves no part of the sphere (nor leaves the place)
 
 
+#: The motion model of each platform (:data:`rovergate.platforms.PLATFORMS`).
+MOTION_MODELS: dict[str, type[MotionModel]] = {"rover": RoverModel, "flyer": FlyerModel}
+
+
 def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
                  predicted: np.ndarray | None = None, free: FreeSpace | None = None,
                  contacts: np.ndarray | None = None, terrain: TerrainMap | None = None
@@ -570,6 +576,5 @@ def motion_model(cfg: MissionConfig, points: np.ndarray, T_map_base: Pose,
     are predictions (the map's ``source``); ``free`` is the known free space (the flyer keeps
     to it); ``contacts`` are where the platform touched the scene (obstacles from then on);
     ``terrain`` is the rover's traversability layer (prepared for this step)."""
-    if cfg.platform == "flyer":
-        return FlyerModel(cfg, points, T_map_base, predicted, free, contacts)
-    return RoverModel(cfg, points, T_map_base, predicted, free, contacts, terrain)
+    return MOTION_MODELS[cfg.platform](cfg, points, T_map_base, predicted, free, contacts,
+                                       terrain)

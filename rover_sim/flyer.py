@@ -10,7 +10,7 @@ from __future__ import annotations
 import fcl
 import numpy as np
 
-from rover_sim.rover import STOP_MARGIN_M, MotionResult, clearance, contact_point
+from rover_sim.rover import STOP_MARGIN_M, MotionResult, clearance, contact_point, mesh_bvh
 from rover_sim.scene import Scene
 from rovergate.config import FlyerConfig
 from rovergate.types import Pose
@@ -22,12 +22,7 @@ def scene_bvh(scene: Scene) -> fcl.BVHModel:
     """The FCL model of the scene's solid mesh, built once per scene (it is only read)."""
     bvh = getattr(scene, "_fcl_bvh", None)
     if bvh is None:
-        mesh = scene.solid_mesh
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
-        bvh.addSubModel(mesh.vertices, mesh.faces)
-        bvh.endModel()
-        scene._fcl_bvh = bvh
+        bvh = scene._fcl_bvh = mesh_bvh(scene.solid_mesh)
     return bvh
 
 
@@ -44,6 +39,15 @@ class FlyerBody:
     def start_state(self, x: float, y: float, yaw: float) -> FlyerState:
         """The flyer's start above a named (ground) start, looking level along ``yaw``."""
         return (x, y, float(self.scene.height_at(x, y)) + self.cfg.altitude_m, yaw, 0.0)
+
+    @staticmethod
+    def state_of(x: float, y: float, z: float, yaw: float, pitch: float) -> FlyerState:
+        """The state of a commanded pose: all of it."""
+        return (x, y, z, yaw, pitch)
+
+    def clearance_at(self, state: tuple[float, ...]) -> float:
+        """Distance between the sphere at ``state`` and the scene (<= 0: collision)."""
+        return self.clearance(state[:3])
 
     @staticmethod
     def base_pose(x: float, y: float, z: float, yaw: float, pitch: float) -> np.ndarray:

@@ -45,16 +45,7 @@ class RoverBody:
     def __init__(self, scene: Scene, rover: RoverConfig) -> None:
         self.scene = scene
         self.cfg = rover
-        mesh = scene.objects_mesh
-        if len(mesh.faces) == 0:  # no obstacles: a far-away speck keeps FCL's model valid
-            import trimesh
-            mesh = trimesh.creation.box(extents=[1e-3] * 3)
-            mesh.apply_translation([0.0, 0.0, -1e6])
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(mesh.vertices), len(mesh.faces))
-        bvh.addSubModel(mesh.vertices, mesh.faces)
-        bvh.endModel()
-        self._scene_obj = fcl.CollisionObject(bvh, fcl.Transform())
+        self._scene_obj = fcl.CollisionObject(mesh_bvh(scene.objects_mesh), fcl.Transform())
         h = rover.body_top_m - rover.clearance_m
         self._body = fcl.CollisionObject(fcl.Box(rover.length_m, rover.width_m, h))
         self._body_offset = np.array([0.0, 0.0, rover.clearance_m + h / 2])
@@ -66,6 +57,19 @@ class RoverBody:
         wheels = np.c_[np.ones(4), self._under_u[[0, 0, 2, 2], [0, 4, 0, 4]],
                        self._under_v[[0, 0, 2, 2], [0, 4, 0, 4]]]
         self._wheel_fit = np.linalg.pinv(wheels)
+
+    def start_state(self, x: float, y: float, yaw: float) -> tuple[float, float, float]:
+        """The rover's state at a named start: the start itself."""
+        return (x, y, yaw)
+
+    def state_of(self, x: float, y: float, z: float, yaw: float, pitch: float
+                 ) -> tuple[float, float, float]:
+        """The state of a commanded pose: its place and heading (the terrain sets the rest)."""
+        return (x, y, yaw)
+
+    def clearance_at(self, state: tuple[float, ...]) -> float:
+        """Distance between the body at ``state`` and the obstacles (<= 0: collision)."""
+        return self.clearance(self.base_pose(*state))
 
     def base_pose(self, x: float, y: float, yaw: float) -> np.ndarray:
         """(4, 4) base pose on the terrain: wheels on the ground, roll and pitch from them."""
@@ -141,6 +145,20 @@ class RoverBody:
         driven = _length(samples[: max(stop, 0) + 1])
         return MotionResult(last_free, collided, n_collisions, float(min_clear), driven,
                             driven / total if total > 0 else 1.0, blocked, contact)
+
+
+def mesh_bvh(mesh) -> fcl.BVHModel:
+    """The FCL model of a trimesh mesh; an empty one (a scene without obstacles) is a
+    far-away speck, which keeps FCL's model valid and touches nothing."""
+    if len(mesh.faces) == 0:
+        import trimesh
+        mesh = trimesh.creation.box(extents=[1e-3] * 3)
+        mesh.apply_translation([0.0, 0.0, -1e6])
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(mesh.vertices), len(mesh.faces))
+    bvh.addSubModel(mesh.vertices, mesh.faces)
+    bvh.endModel()
+    return bvh
 
 
 def clearance(body: fcl.CollisionObject, scene: fcl.CollisionObject) -> float:

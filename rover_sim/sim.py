@@ -25,11 +25,11 @@ from rovergate.errors import UnknownNameError
 from rovergate.geometry import (
     HAZCAMS,
     camera_from_base,
-    check_platform,
     hazcam_from_base,
     voxel_first_points,
     wrap_angle,
 )
+from rovergate.platforms import get_platform
 from rovergate.types import ExecutionReport, PlanPath, Pose, SensorFrame
 
 log = logging.getLogger("rovergate.sim")
@@ -38,6 +38,13 @@ log = logging.getLogger("rovergate.sim")
 #: frames after the first, second and third step in a row that the rover did not move; it
 #: starts again from the first after the third.
 LOOK_AROUND_DEG = (90.0, -90.0, 180.0)
+
+#: The body of each platform (:data:`rovergate.platforms.PLATFORMS`), built for a scene and a
+#: mission: its start, its state of a commanded pose, its clearance, its motion.
+BODIES = {
+    "rover": lambda scene, cfg: RoverBody(scene, cfg.rover),
+    "flyer": lambda scene, cfg: FlyerBody(scene, cfg.flyer, cfg.rover.check_spacing_m),
+}
 #: Less than this far and this much turn in a step is not moving, for the look-around.
 HOLD_M, HOLD_DEG = 0.01, 1.0
 
@@ -47,28 +54,21 @@ class RoverSim:
 
     def __init__(self, cfg: MissionConfig, scene: Scene | None = None) -> None:
         self.cfg = cfg
-        check_platform(cfg.platform)
+        platform = get_platform(cfg.platform)
         self.scene = scene or load_scene(cfg.scene)
         if cfg.start not in self.scene.starts:
             raise UnknownNameError(f"scene {self.scene.name!r} has no start {cfg.start!r}; "
                                    f"choose one of: {', '.join(self.scene.starts)}")
         x, y, yaw = self.scene.starts[cfg.start]
-        self.flying = cfg.platform == "flyer"
-        if self.flying:
-            self.body: RoverBody | FlyerBody = FlyerBody(self.scene, cfg.flyer,
-                                                         cfg.rover.check_spacing_m)
-            self.state: tuple[float, ...] = self.body.start_state(x, y, yaw)
-            clear = self.body.clearance(self.state[:3])
-        else:
-            self.body = RoverBody(self.scene, cfg.rover)
-            self.state = (x, y, yaw)
-            clear = self.body.clearance(self.T_map_base)
-        if clear <= 0:
+        self.flying = platform.flies
+        self.body: RoverBody | FlyerBody = BODIES[platform.name](self.scene, cfg)
+        self.state: tuple[float, ...] = self.body.start_state(x, y, yaw)
+        if self.body.clearance_at(self.state) <= 0:
             log.warning("start %r of %s touches the scene for this platform configuration",
                         cfg.start, self.scene.name)
         self.world = PyBulletWorld(self.scene, cfg.sensor, None if self.flying else cfg.rover)
         self.hazcam = (DepthCamera.of(cfg.hazcam, self.world.client)
-                       if cfg.hazcam.enabled and not self.flying else None)
+                       if cfg.hazcam.enabled and platform.hazcams else None)
         self.sensing = Sensing(cfg.sensing, cfg.seed)
         self._drift = np.eye(4)
         self._step = 0
@@ -136,15 +136,14 @@ class RoverSim:
         """A commanded pose (in the platform's believed frame) as a true state."""
         p = Pose.from_matrix(np.linalg.inv(self._drift) @ pose.matrix())
         x, y, z = (float(v) for v in p.position)
-        return (x, y, z, p.yaw, p.pitch) if self.flying else (x, y, p.yaw)
+        return self.body.state_of(x, y, z, p.yaw, p.pitch)
 
     def execute(self, path: PlanPath) -> ExecutionReport:
         """Drive along ``path``; collisions and untraversable ground stop the platform."""
         waypoints = [self._true_state(p) for p in path.poses]
         error = float(np.linalg.norm(self.sensing.drift_at(path.step + 1)[:3]))
         if not waypoints:
-            clear = (self.body.clearance(self.state[:3]) if self.flying
-                     else self.body.clearance(self.T_map_base))
+            clear = self.body.clearance_at(self.state)
             self._note_hold(self.state)
             return ExecutionReport(path.step, False, 0, clear, 0.0, 1.0, False, error)
         before = self.state

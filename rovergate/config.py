@@ -17,6 +17,7 @@ from typing import Any, Literal
 import tyro
 
 from rovergate.errors import ConfigError
+from rovergate.platforms import Platform, get_platform
 
 
 @dataclass
@@ -500,6 +501,12 @@ class MissionConfig:
     session: tyro.conf.OmitArgPrefixes[SessionConfig] = field(default_factory=SessionConfig)
 
     # --- radii derived from the settings: one definition for every module ------------------
+
+    @property
+    def vehicle(self) -> Platform:
+        """The registered platform ``platform`` names (:mod:`rovergate.platforms`): what it
+        has, asked rather than compared by name."""
+        return get_platform(self.platform)
 
     @property
     def tau_m(self) -> float:

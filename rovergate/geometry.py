@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from rovergate.config import HazcamConfig, SensorConfig
-from rovergate.errors import UnknownNameError
+from rovergate.platforms import get_platform
 from rovergate.rotations import (  # noqa: F401 (re-exported: every caller's one module)
     matrix_to_quat,
     quat_to_matrix,
@@ -30,21 +30,11 @@ _OFFSET = 1 << 20  # voxel indices are shifted into [0, 2^21) so they pack into 
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-PLATFORMS = ("rover", "flyer")
-
-
-def check_platform(name: str) -> None:
-    """Raises :class:`UnknownNameError` (listing the platforms) for an unknown name."""
-    if name not in PLATFORMS:
-        raise UnknownNameError(f"unknown platform {name!r}; choose one of: "
-                               f"{', '.join(PLATFORMS)} (--platform)")
-
-
 def camera_from_base(T_map_base: np.ndarray, sensor: SensorConfig,
                      platform: str = "rover", look_deg: float = 0.0) -> np.ndarray:
     """(4, 4) optical-frame pose of the camera for a base pose of ``platform``; the rover's
     mast panned ``look_deg`` (left positive) beyond its mounting's ``pan_deg``."""
-    if platform == "flyer":
+    if get_platform(platform).flies:  # the camera is the body
         T = T_map_base.copy()
         T[:3, :3] = T_map_base[:3, :3] @ R_BODY_OPTICAL
         return T

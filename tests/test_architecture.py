@@ -50,6 +50,23 @@ def test_every_launched_module_has_its_logic():
         assert getattr(importlib.import_module(module), cls).spec is graph.MODULES[name]
 
 
+def test_every_platform_has_its_body_and_its_motion_model():
+    # A platform is one registration in rovergate.platforms plus its classes under its name;
+    # the modules ask it what it has (cfg.vehicle) rather than compare names.
+    from planner.platforms import MOTION_MODELS
+    from rover_sim.sim import BODIES
+    from rovergate.platforms import PLATFORMS
+    assert set(BODIES) == set(MOTION_MODELS) == set(PLATFORMS)
+    for name, p in PLATFORMS.items():
+        cfg = MissionConfig(platform=name)
+        assert cfg.vehicle is p and p.dims == (3 if p.flies else 2)
+        from planner.planner import planner_name
+        assert planner_name(cfg) == p.default_planner
+    with pytest.raises(UnknownNameError, match="unknown platform 'boat'; choose one of: rover, "
+                                               "flyer"):
+        MissionConfig(platform="boat").vehicle
+
+
 def test_a_broken_declaration_is_refused(monkeypatch):
     bad = dataclasses.replace(graph.MODULES["planner"],
                               inputs={"map": graph.Input("no_such_topic")})

@@ -21,6 +21,7 @@ from rover_sim.sensing import Sensing
 from rover_sim.world import PyBulletWorld
 from rovergate.config import RoverConfig, SensingConfig, SensorConfig
 from rovergate.geometry import camera_from_base
+from rovergate.platforms import get_platform
 from rovergate.types import CameraIntrinsics
 
 
@@ -60,7 +61,7 @@ def walk(scene: Scene, platform: str, steps: int, seed: int,
     if len(rows) == 0:
         return
     cells = np.c_[xs[cols], ys[rows]]
-    flying = platform == "flyer"
+    flying = get_platform(platform).flies
     rover = None if flying else RoverBody(scene, RoverConfig())
     world = PyBulletWorld(scene, sensor, None if flying else RoverConfig())
     degrade = Sensing(sensing or SensingConfig(), seed)

@@ -57,7 +57,7 @@ def fault_tolerance_m(cfg: MissionConfig) -> float:
     """How near the contact an obstacle of the map must lie for a planner fault: the margin
     the planner keeps from map points (the flyer's sphere margin; the rover's obstacle box
     half-edge, 0.075 m, plus its body margin, 0.1 m, rounded to one obstacle voxel, 0.15 m)."""
-    return cfg.planner.flyer_margin_m if cfg.platform == "flyer" else cfg.planner.obstacle_voxel_m
+    return cfg.planner.flyer_margin_m if cfg.vehicle.flies else cfg.planner.obstacle_voxel_m
 
 
 def collision_class(report: ExecutionReport, planner_map: PlannerMap, cfg: MissionConfig,
@@ -72,7 +72,7 @@ def collision_class(report: ExecutionReport, planner_map: PlannerMap, cfg: Missi
         return PLANNER_FAULT
     planner_map = planner_map.serving(Channel.COLLISION)  # what the planner checked against
     points = xyz(planner_map.points)
-    if cfg.platform == "rover" and len(points):
+    if not cfg.vehicle.flies and len(points):
         # What the rover's collision model counts as an obstacle (not the ground it reads).
         model = motion_model(cfg, points, T_map_base,
                              predicted=planner_map.points["source"] == Source.PREDICTED)
