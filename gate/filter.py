@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from gate.views import extends, pixels, row_keys
+from rovergate.geometry import project
 from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics
 
@@ -154,18 +155,9 @@ class ObservationGate:
             t = np.stack(self._t_cam_map[lo:lo + _CHUNK_FRUSTUMS])     # (F, 3)
             ks = self._intrinsics[lo:lo + _CHUNK_FRUSTUMS]
             pc = np.einsum("fij,nj->fni", R, p) + t[:, None, :]          # (F, N, 3)
-            z = pc[..., 2]
-            in_range = (z >= self.min_range_m) & (z <= self.max_range_m)
-            zs = np.where(in_range, z, 1.0)
-            fx = np.array([k.fx for k in ks])[:, None]
-            fy = np.array([k.fy for k in ks])[:, None]
-            cx = np.array([k.cx for k in ks])[:, None]
-            cy = np.array([k.cy for k in ks])[:, None]
-            w = np.array([k.width for k in ks])[:, None]
-            h = np.array([k.height for k in ks])[:, None]
-            u = fx * pc[..., 0] / zs + cx
-            v = fy * pc[..., 1] / zs + cy
-            inside = in_range & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
+            per_frame = (np.array([[getattr(k, f)] for k in ks])
+                         for f in ("fx", "fy", "cx", "cy", "width", "height"))  # (F, 1) each
+            inside = project(pc, *per_frame, self.min_range_m, self.max_range_m)[0]
             counts[active] += inside.sum(axis=0, dtype=np.int32)
         return counts
 

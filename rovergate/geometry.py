@@ -111,17 +111,34 @@ def voxel_first_points(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return points[np.sort(first)]
 
 
+#: One intrinsic of a camera, or of each of a stack of frames (see :func:`project`).
+Intrinsic = float | np.ndarray
+
+
 def pixels_of(points_cam: np.ndarray, k: CameraIntrinsics, min_range_m: float,
               max_range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Where a camera sees (N, 3) points given in its optical frame: ``(idx, v, u, z)`` of
     those in front of it within range that land on a pixel (the nearest), with their row,
-    column and depth along the optical axis. The one projection of the gain's z-buffer, the
-    views and the gates."""
-    z = points_cam[:, 2]
-    ok = (z >= min_range_m) & (z <= max_range_m)
-    zs = np.where(ok, z, 1.0)
-    u = np.floor(k.fx * points_cam[:, 0] / zs + k.cx + 0.5).astype(np.int64)
-    v = np.floor(k.fy * points_cam[:, 1] / zs + k.cy + 0.5).astype(np.int64)
-    ok &= (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+    column and depth along the optical axis. The gain's z-buffer, the views and the gates
+    all project through :func:`project`."""
+    ok, v, u, z = project(points_cam, k.fx, k.fy, k.cx, k.cy, k.width, k.height,
+                          min_range_m, max_range_m)
     idx = np.flatnonzero(ok)
     return idx, v[idx], u[idx], z[idx]
+
+
+def project(points_cam: np.ndarray, fx: Intrinsic, fy: Intrinsic, cx: Intrinsic,
+            cy: Intrinsic, width: Intrinsic, height: Intrinsic, min_range_m: float,
+            max_range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The one pinhole projection: ``(ok, v, u, z)`` of (..., 3) points in a camera's optical
+    frame, ``ok`` where a point lies in front of it within range and lands on a pixel (the
+    nearest: row ``v``, column ``u``), ``z`` its depth along the optical axis. The intrinsics
+    are numbers, or arrays that broadcast against ``points_cam[..., 0]`` (one row per frame:
+    the gate counts a chunk of frames at once)."""
+    z = points_cam[..., 2]
+    ok = (z >= min_range_m) & (z <= max_range_m)
+    zs = np.where(ok, z, 1.0)
+    u = np.floor(fx * points_cam[..., 0] / zs + cx + 0.5).astype(np.int64)
+    v = np.floor(fy * points_cam[..., 1] / zs + cy + 0.5).astype(np.int64)
+    ok &= (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return ok, v, u, z

@@ -64,7 +64,7 @@ def test_every_platform_has_its_body_and_its_motion_model():
         assert planner_name(cfg) == p.default_planner
     with pytest.raises(UnknownNameError, match="unknown platform 'boat'; choose one of: rover, "
                                                "flyer"):
-        MissionConfig(platform="boat").vehicle
+        assert MissionConfig(platform="boat").vehicle
 
 
 def test_a_broken_declaration_is_refused(monkeypatch):

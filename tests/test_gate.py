@@ -47,6 +47,26 @@ def test_counts_frustum_inclusions():
     assert g.exposure_counts(np.vstack([TARGET, BEHIND])).tolist() == [3, 0]
 
 
+def test_the_gate_counts_a_frame_where_the_views_and_the_gain_see_a_pixel():
+    # One projection (rovergate.geometry.project): a point counts toward n_t exactly when
+    # pixels_of puts it on a pixel, edges and ranges included, over frames of two cameras.
+    from rovergate.geometry import pixels_of
+    rng = np.random.default_rng(3)
+    g, expected = make_gate(), 0
+    points = rng.uniform([-2.0, -12.0, -8.0], [24.0, 12.0, 10.0], (4000, 3))
+    cams = [(camera_looking_along_x(x), k) for x in (0.0, 1.5, 3.0)
+            for k in (K, CameraIntrinsics.from_fov(31, 17, 70.0))]
+    for T, k in cams:
+        g.add_frustum(T, k)
+        R = T[:3, :3].T
+        idx = pixels_of(points @ R.T - R @ T[:3, 3], k, 0.3, 20.0)[0]
+        hit = np.zeros(len(points), dtype=np.int32)
+        hit[idx] = 1
+        expected = expected + hit
+    assert g.exposure_counts(points).tolist() == expected.tolist()
+    assert 0 < (expected > 0).mean() < 1  # some in view, some not: the test can fail
+
+
 def test_out_of_range_is_not_exposed():
     g = make_gate()
     g.add_frustum(camera_looking_along_x(), K)
