@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -67,14 +68,9 @@ class Gate:
         self.reference_xyz = reference_xyz
         self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
         self.delta_m = cfg.oracle_delta_m(d_scene_m)
-        eps, near, far = cfg.epsilon_m(d_scene_m), sensor.min_range_m, sensor.max_range_m
-        self.filter = {
-            "gated-ray": lambda: RayGate(cfg.k, eps, near, far, cfg.ray_margin_m,
-                                         cfg.ray_grazing_max_deg),
-            "gated-pose": lambda: PoseGate(cfg.k, eps, near, far, cfg.pose_sigmas),
-            "gated-split": lambda: SplitGate(cfg.k, eps, near, far, cfg.ray_margin_m,
-                                             cfg.ray_grazing_max_deg, cfg.split_baseline_m),
-        }.get(condition, lambda: ObservationGate(cfg.k, eps, near, far))()
+        self.variant = VARIANTS.get(condition)  # None: the map holds no prediction
+        self.filter = (self.variant or VARIANTS["gated"]).make_filter(
+            cfg, cfg.epsilon_m(d_scene_m), sensor.min_range_m, sensor.max_range_m)
         self.views = ViewCounter(sensor.min_range_m, sensor.max_range_m, view_tolerance_m)
 
     def restore(self, T_map_camera: Pose, intrinsics: CameraIntrinsics, depth: np.ndarray,
@@ -90,8 +86,7 @@ class Gate:
              depth: np.ndarray, covariance: np.ndarray | None = None) -> PlannerMap:
         """The planner-facing occupancy of step t (the frame of step t is counted first)."""
         self.restore(T_map_camera, intrinsics, depth, covariance)
-        name = self.condition.name
-        if name == "truth":
+        if self.variant is None and self.condition.needs_truth:
             ref = self.reference_xyz  # O* alone (equation 2)
             return PlannerMap(mapped.step, make_cloud(
                 ref, PLANNER_DTYPE, source=Source.TRUTH,
@@ -100,35 +95,95 @@ class Gate:
         observed = make_cloud(s_xyz, PLANNER_DTYPE, source=Source.OBSERVED,
                               views=as_views(self.views.views_grown("observed", s_xyz)))
         observed = observed[in_region(s_xyz, self.bounds_m)]
-        if name == "obs":
+        if self.variant is None:  # S_t alone
             return PlannerMap(mapped.step, observed)
         pred = xyz(mapped.predicted)
         pred = pred[in_region(pred, self.bounds_m)]
-        keep = np.ones(len(pred), dtype=bool)
-        channels = np.full(len(pred), Channel.BOTH, dtype=np.uint8)
-        extra = np.zeros((0, 3), dtype=np.float32)
-        suppressed = 0
-        if name == "gated-split":
-            no_gain, no_collision = self.filter.withheld(pred, s_xyz)
-            channels -= (no_gain * Channel.GAIN + no_collision * Channel.COLLISION).astype(
-                np.uint8)
-            keep = channels != 0
-            suppressed = int(no_gain.sum())
-        elif self.condition.withholds:
-            unsupported = self.filter.unsupported(pred, s_xyz)
-            keep = ~unsupported
-            suppressed = int(unsupported.sum())
-        elif name in ("learned-fp", "learned+fn"):
-            tags = oracle_tags(pred, self.reference_xyz, self.delta_m, self._reference_tree)
-            if name == "learned-fp":
-                keep = ~tags.false_positive
-            else:
-                extra = tags.false_negative_points
+        chosen = self.variant.select(self, pred, s_xyz)
+        keep = chosen.channels != 0
         pred = pred[keep]
         parts = [observed,
                  make_cloud(pred, PLANNER_DTYPE, source=Source.PREDICTED,
                             views=as_views(self.views.views_keyed("predicted", pred)),
-                            channels=channels[keep]),
-                 make_cloud(extra, PLANNER_DTYPE, source=Source.ORACLE_FN,
-                            views=as_views(self.views.views_keyed("oracle", extra)))]
-        return PlannerMap(mapped.step, np.concatenate(parts), suppressed)
+                            channels=chosen.channels[keep]),
+                 make_cloud(chosen.extra, PLANNER_DTYPE, source=Source.ORACLE_FN,
+                            views=as_views(self.views.views_keyed("oracle", chosen.extra)))]
+        return PlannerMap(mapped.step, np.concatenate(parts), chosen.suppressed)
+
+
+@dataclass
+class Selection:
+    """What a variant passes on of one step's prediction."""
+
+    channels: np.ndarray
+    """(M,) uint8 over the prediction: the planner's uses it serves (:class:`Channel`; 0:
+    withheld from both)."""
+    extra: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.float32))
+    """(K, 3) points added beside it (the oracle's false negatives)."""
+    suppressed: int = 0
+    """Predicted points a gate withheld from the gain (``PlannerMap.suppressed``)."""
+
+
+def _all(pred: np.ndarray) -> np.ndarray:
+    return np.full(len(pred), Channel.BOTH, dtype=np.uint8)
+
+
+def _everything(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    return Selection(_all(pred))
+
+
+def _without_unsupported(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    unsupported = gate.filter.unsupported(pred, surface)  # U_t (equation 4) or its variant
+    return Selection(np.where(unsupported, 0, Channel.BOTH).astype(np.uint8),
+                     suppressed=int(unsupported.sum()))
+
+
+def _split(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    assert isinstance(gate.filter, SplitGate)
+    no_gain, no_collision = gate.filter.withheld(pred, surface)
+    channels = _all(pred) - (no_gain * Channel.GAIN + no_collision * Channel.COLLISION).astype(
+        np.uint8)
+    return Selection(channels, suppressed=int(no_gain.sum()))
+
+
+def _without_false_positives(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    tags = oracle_tags(pred, gate.reference_xyz, gate.delta_m, gate._reference_tree)
+    return Selection(np.where(tags.false_positive, 0, Channel.BOTH).astype(np.uint8))
+
+
+def _with_false_negatives(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    tags = oracle_tags(pred, gate.reference_xyz, gate.delta_m, gate._reference_tree)
+    return Selection(_all(pred), extra=tags.false_negative_points)
+
+
+def _frustum(cfg: GateConfig, eps: float, near: float, far: float) -> ObservationGate:
+    return ObservationGate(cfg.k, eps, near, far)
+
+
+@dataclass(frozen=True)
+class Variant:
+    """How the gate builds the map of one condition that passes on the prediction: the
+    filter that counts its exposures (given the gate's settings, epsilon and the sensor's
+    range), and what it keeps of each step's prediction (given the gate, the prediction and
+    S_t). A condition without a variant gets S_t alone, or O* alone when it reads the truth
+    (``obs``, ``truth``)."""
+
+    make_filter: Callable[[GateConfig, float, float, float], ObservationGate]
+    select: Callable[[Gate, np.ndarray, np.ndarray], Selection]
+
+
+#: The variant of each condition of :data:`rovergate.conditions.CONDITIONS` that passes on
+#: the prediction, by its name (a test holds the two tables together).
+VARIANTS: dict[str, Variant] = {
+    "learned": Variant(_frustum, _everything),
+    "learned-fp": Variant(_frustum, _without_false_positives),
+    "learned+fn": Variant(_frustum, _with_false_negatives),
+    "gated": Variant(_frustum, _without_unsupported),
+    "gated-ray": Variant(lambda cfg, eps, near, far: RayGate(
+        cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg), _without_unsupported),
+    "gated-pose": Variant(lambda cfg, eps, near, far: PoseGate(
+        cfg.k, eps, near, far, cfg.pose_sigmas), _without_unsupported),
+    "gated-split": Variant(lambda cfg, eps, near, far: SplitGate(
+        cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg,
+        cfg.split_baseline_m), _split),
+}

@@ -153,6 +153,18 @@ def test_every_condition_composes_as_equation_2(name):
     assert counts == expected
 
 
+def test_every_condition_with_a_prediction_has_its_variant_and_no_other_does():
+    # A gate variant is one entry of gate.gate.VARIANTS beside its condition; the gate asks
+    # the entry (its filter, what it keeps) rather than branching on the name.
+    from gate.filter import PoseGate, RayGate, SplitGate
+    from gate.gate import VARIANTS
+    assert set(VARIANTS) == {n for n, c in CONDITIONS.items() if c.needs_prediction}
+    filters = {n: type(new_gate(n, np.zeros((1, 3), np.float32)).filter) for n in CONDITIONS}
+    assert (filters["gated-ray"], filters["gated-pose"], filters["gated-split"]) == \
+        (RayGate, PoseGate, SplitGate)
+    assert {filters[n] for n in CONDITIONS if not n.startswith("gated-")} == {ObservationGate}
+
+
 def test_oracle_tags_follow_the_paper():
     ref = np.array([[0, 0, 0], [1, 0, 0]], dtype=np.float32)
     pred = np.array([[0.05, 0, 0], [5, 0, 0]], dtype=np.float32)
