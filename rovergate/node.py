@@ -99,6 +99,28 @@ def decoding(topic: str, key: str, drops: Drops,
     return on_sample
 
 
+def ask_until_answered(session: zenoh.Session, key: str, topic: str, who: str,
+                       timeout_s: float, log: logging.Logger,
+                       before_each: Callable[[], None] | None = None) -> Any:
+    """The value the queryable on ``key`` serves (``topic``'s message), asked as ``who``
+    again and again until an answer decodes (a queryable just declared may not be routed
+    yet); an answer that does not decode is logged and dropped. ``before_each`` runs before
+    each try (the mission checks its processes there). Raises :class:`TimeoutError` when no
+    answer came within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while (left := deadline - time.monotonic()) > 0:
+        if before_each is not None:
+            before_each()
+        for reply in session.get(key, timeout=min(10.0, max(left, 0.1)), attachment=who):
+            if reply.ok is not None:
+                try:
+                    return check_and_decode(topic, reply.ok)[1]
+                except MessageError as exc:
+                    log.warning("dropped a reply on %s: %s", key, exc)
+        time.sleep(0.2)  # no answer yet: ask again after a pause, not in a busy loop
+    raise TimeoutError(key)
+
+
 class ModuleNode:
     """Session, subscriptions, liveliness and lockstep for one module process."""
 
@@ -174,18 +196,11 @@ class ModuleNode:
     def query(self, topic: str, timeout_s: float) -> Any:
         """Fetch the value a queryable serves on ``topic``, retrying until ``timeout_s``."""
         key = self.keys.key(topic)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            for reply in self.session.get(key, timeout=min(10.0, timeout_s),
-                                          attachment=self.name):
-                if reply.ok is not None:
-                    try:
-                        return check_and_decode(topic, reply.ok)[1]
-                    except MessageError as exc:
-                        self.log.warning("dropped a reply on %s: %s", key, exc)
-            time.sleep(0.2)
-        raise TransportError(f"{self.name}: no answer on {key} within {timeout_s:.0f} s; "
-                             "is the simulator running in this namespace?")
+        try:
+            return ask_until_answered(self.session, key, topic, self.name, timeout_s, self.log)
+        except TimeoutError:
+            raise TransportError(f"{self.name}: no answer on {key} within {timeout_s:.0f} s; "
+                                 "is the simulator running in this namespace?") from None
 
     def wait_for_peers(self, timeout_s: float = 60.0) -> None:
         """With ``wait_for_peers`` set, wait until that many peers are linked, so that

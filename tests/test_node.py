@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 
+import pytest
 from conftest import Waiter
 
 from rovergate.config import SessionConfig
@@ -147,3 +148,32 @@ def test_a_launched_modules_command_line_reads_as_tyro_reads_it(tmp_path):
                   argv[:2] + ["--wait-for-peers", "x"], argv[:2] + ["--mode"],
                   ["--steps", "3"], argv + ["--mode", "peer"]):
         assert _launched_config(other) is None
+
+
+def test_a_query_is_asked_again_until_an_answer_decodes_and_times_out_in_its_own_words(
+        loopback_pair, caplog):
+    from rovergate.node import ask_until_answered
+    _, server, client = loopback_pair
+    asked: list[str] = []
+
+    def on_query(query):
+        asked.append(str(query.attachment.to_string()) if query.attachment else "")
+        if len(asked) == 1:  # the first answer is garbage, with the right encoding
+            query.reply(query.key_expr, b"\x00\x01garbage", encoding=cdr_encoding("status"))
+        else:
+            query.reply(query.key_expr, encode("status", MissionStatus(4, 9, "running", "obs",
+                                                                       0.5, 0)),
+                        encoding=cdr_encoding("status"))
+    queryable = server.declare_queryable("rover/mission/status", on_query)
+    log = logging.getLogger("test.ask")
+    with caplog.at_level(logging.WARNING, "test.ask"):
+        value = ask_until_answered(client, "rover/mission/status", "status", "planner", 60, log)
+    assert (value.step, value.steps_total, value.coverage) == (4, 9, 0.5)
+    assert asked[:2] == ["planner", "planner"]  # asked twice, as the caller
+    assert "dropped a reply on rover/mission/status" in caplog.text
+    queryable.undeclare()
+    checks: list[int] = []
+    with pytest.raises(TimeoutError, match="rover/nothing/here"):
+        ask_until_answered(client, "rover/nothing/here", "status", "mission", 0.5, log,
+                           before_each=lambda: checks.append(1))
+    assert checks  # the caller's check ran before each try

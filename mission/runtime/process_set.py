@@ -48,7 +48,7 @@ from rovergate.graph import LAUNCHED, MODULES, producer, stage_module
 from rovergate.keys import Keys
 from rovergate.messages import prepare
 from rovergate.module import STOP
-from rovergate.node import Drops, check_and_decode, decoding
+from rovergate.node import Drops, ask_until_answered, decoding
 from rovergate.session import open_session
 from rovergate.taps import tapped_topics
 from rovergate.types import MissionStatus, StepTiming
@@ -371,15 +371,12 @@ class ProcessSetTransport:
 
     def ask(self, topic: str) -> Any:
         key = self.keys.key(topic)
-        deadline = time.monotonic() + self._cfg.ready_timeout_s
-        while time.monotonic() < deadline:
-            self.supervisor.fail_on_exit()
-            for reply in self.session.get(key, timeout=30.0, attachment="mission"):
-                if reply.ok is not None:
-                    return check_and_decode(topic, reply.ok)[1]
-            # No reply yet: a queryable that was just declared may not be routed; ask again.
-            time.sleep(0.2)
-        raise MissionFailed(f"timed out waiting for an answer on {key}")
+        try:
+            return ask_until_answered(self.session, key, topic, "mission",
+                                      self._cfg.ready_timeout_s, log,
+                                      before_each=self.supervisor.fail_on_exit)
+        except TimeoutError:
+            raise MissionFailed(f"timed out waiting for an answer on {key}") from None
 
     def tick(self, status: MissionStatus) -> None:
         self.clock.publish(status)
