@@ -106,6 +106,7 @@ class GainField:
         self.k = k
         self.min_range_m, self.max_range_m, self.tolerance_m = min_range_m, max_range_m, tolerance_m
         p = np.asarray(points_map, dtype=np.float64)
+        self._novel = np.asarray(novel, dtype=bool)
         if len(p) == 0:
             self.centres = np.zeros((0, 3))
             self.weight = np.zeros(0, dtype=np.int64)
@@ -153,6 +154,15 @@ class GainField:
             return np.zeros(0, dtype=np.int64)
         return np.bincount(self._primitive, weights=mask.astype(np.float64),
                            minlength=len(self.centres)).astype(np.int64)
+
+    def counted(self, visible: np.ndarray) -> np.ndarray:
+        """(N,) bool over the field's points: the novel points of the ``visible`` primitives,
+        the ones :meth:`gain` counts (``counted(v).sum() == gain(v)``)."""
+        if len(self.centres) == 0:
+            return np.zeros(len(self._novel), dtype=bool)
+        hit = np.zeros(len(self.centres), dtype=bool)
+        hit[visible] = True
+        return self._novel & hit[self._primitive]
 
     def __len__(self) -> int:
         return len(self.centres)

@@ -10,7 +10,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from planner.freespace import FreeSpace
-from planner.planner import make_planner
+from planner.planner import counted_points, make_planner
 from planner.platforms import flyer_altitudes
 from planner.traversability import TerrainMap, driven_way
 from rovergate.config import MissionConfig
@@ -70,6 +70,9 @@ class PlannerLogic(LogicDefaults):
         result = self.planner.plan(step, inputs["map"], inputs["base"], self.free,
                                    np.array(self.contacts, dtype=np.float32).reshape(-1, 3),
                                    terrain=self.terrain)
+        goal = result.path.poses[-1] if result.path.poses else inputs["base"]
+        gain_points = counted_points(self.cfg, inputs["map"], goal,
+                                     getattr(self.planner, "rendered", None))
         t2 = time.perf_counter()
         log.debug("step %d: %s, gain %d after %d attempts", step, result.reason, result.gain,
                   result.attempts)
@@ -81,7 +84,7 @@ class PlannerLogic(LogicDefaults):
             grid = TraversabilityGrid(step, np.zeros((0, 0), dtype=np.int8),
                                       self.cfg.traverse.cell_m, (0.0, 0.0))
             refused, known = {}, 0
-        report = TraverseReport(step, refused, result.reason, known)
+        report = TraverseReport(step, refused, result.reason, known, gain_points)
         return StepOutput([("traversability", grid), ("traverse", report),
                            ("rejected", result.rejected), ("path", result.path)],
                           {"traverse": t1 - t0, "plan": t2 - t1})

@@ -21,6 +21,7 @@ from planner.platforms import MotionModel, motion_model
 from planner.traversability import TerrainMap
 from rovergate.config import MissionConfig
 from rovergate.errors import UnknownNameError
+from rovergate.geometry import camera_from_base
 from rovergate.types import (
     CameraIntrinsics,
     Channel,
@@ -56,6 +57,8 @@ class Planner(abc.ABC):
 
     def __init__(self, cfg: MissionConfig) -> None:
         self.cfg = cfg
+        self.rendered: tuple[PlannerMap, GainField] | None = None
+        """The map and the gain field of the latest step (:func:`counted_points` reads it)."""
 
     @abc.abstractmethod
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
@@ -82,8 +85,27 @@ class Planner(abc.ABC):
                              contacts=contacts, terrain=terrain)
         model.leave_blocked_start()
         rng = np.random.default_rng([cfg.seed, step])
-        return model, rng, gain_field(cfg, xyz(attracting.points),
-                                      novel_mask(attracting, pc.observed_min_views))
+        field = gain_field(cfg, xyz(attracting.points),
+                           novel_mask(attracting, pc.observed_min_views))
+        self.rendered = (occupancy, field)
+        return model, rng, field
+
+
+def counted_points(cfg: MissionConfig, occupancy: PlannerMap, goal: Pose,
+                   rendered: tuple[PlannerMap, GainField] | None = None) -> np.ndarray:
+    """(K,) uint32 indices into ``occupancy.points`` of the points the gain of the view from
+    ``goal`` (a base pose) counts: the novel points, among those serving the gain, of the
+    primitives that view sees. ``rendered``: the map and gain field the planner built this
+    step (:meth:`Planner._setup`), read when it is of this map; else the field is built."""
+    serving = np.flatnonzero((occupancy.points["channels"] & Channel.GAIN) != 0)
+    if rendered is not None and rendered[0] is occupancy:
+        field = rendered[1]
+    else:
+        attracting = occupancy.serving(Channel.GAIN)
+        field = gain_field(cfg, xyz(attracting.points),
+                           novel_mask(attracting, cfg.planner.observed_min_views))
+    cam = camera_from_base(goal.matrix(), cfg.sensor, cfg.platform)
+    return serving[field.counted(field.visible(cam))].astype(np.uint32)
 
 
 def gain_field(cfg: MissionConfig, points: np.ndarray, novel: np.ndarray) -> GainField:

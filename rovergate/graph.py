@@ -88,8 +88,9 @@ TOPICS: dict[str, Topic] = {
                             "only: -1 unknown, 0 clear, 100 an obstacle to the body), "
                             "0.1 m cells; 0 x 0 on the flyer"),
     "traverse": Topic("plan/traverse", "rovergate_msgs/msg/TraverseReport",
-                      "what the traversability layer refused this step, by hazard, and the "
-                      "planner's choice (best-feasible, rotate, escape, backout, stay)"),
+                      "what the traversability layer refused this step, by hazard, the "
+                      "planner's choice (best-feasible, rotate, escape, backout, stay), and "
+                      "the map points the gain of its chosen view counts (`gain_points`)"),
     "execution": Topic("state/execution", "rovergate_msgs/msg/ExecutionReport",
                        "what the simulator executed: collided, collision samples, minimum "
                        "clearance, length driven"),

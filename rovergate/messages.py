@@ -317,12 +317,14 @@ _HAZARD_FIELDS = {"unknown": "refused_unknown", "wheel-drop": "refused_wheel_dro
 def traverse_to_ros(r: TraverseReport) -> RosMsg:
     return _T["rovergate_msgs/msg/TraverseReport"](
         header=_header(r.step), step=r.step, reason=r.reason, known_cells=int(r.known_cells),
+        gain_points=np.ascontiguousarray(r.gain_points, dtype=np.uint32),
         **{f: int(r.refused.get(k, 0)) for k, f in _HAZARD_FIELDS.items()})
 
 
 def traverse_from_ros(m: RosMsg) -> TraverseReport:
     return TraverseReport(int(m.step), {k: int(getattr(m, f)) for k, f in _HAZARD_FIELDS.items()},
-                          str(m.reason), int(m.known_cells))
+                          str(m.reason), int(m.known_cells),
+                          np.asarray(m.gain_points, dtype=np.uint32))
 
 
 def grid_to_ros(g: TraversabilityGrid) -> RosMsg:

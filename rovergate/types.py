@@ -229,6 +229,9 @@ class TraverseReport:
     reason: str = ""
     """The planner's choice: best-feasible, rotate, escape, backout or stay."""
     known_cells: int = 0
+    gain_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint32))
+    """(K,) uint32 indices into the step's planner map: the points the gain of the view from
+    the chosen goal counts (its gain is K)."""
 
 
 @dataclass

@@ -60,7 +60,7 @@ VALUES = {
     "hazcam_front_info": (7, CameraIntrinsics.from_fov(16, 12, 90.0)),
     "hazcam_rear_info": (7, CameraIntrinsics.from_fov(16, 12, 90.0)),
     "traverse": TraverseReport(7, {"unknown": 3, "wheel-drop": 1, "tilt": 0, "belly": 2},
-                               "backout", 1234),
+                               "backout", 1234, np.array([0, 5, 70_000], np.uint32)),
     "traversability": TraversabilityGrid(7, np.array([[-1, 0], [100, 0], [0, -1]], np.int8),
                                          0.125, (-3.5, 2.25)),
     "status": MissionStatus(7, 100, "running", "obs", 0.25, 1),

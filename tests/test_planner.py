@@ -137,6 +137,37 @@ def test_planners_move_towards_novel_points_and_are_deterministic(planner):
     assert abs(np.cos(end.yaw)) > 0.3 and np.cos(end.yaw) > 0  # now looks towards +x
 
 
+@pytest.mark.parametrize("planner", [GreedyPlanner, BeamPlanner])
+def test_the_points_a_chosen_view_counts_are_its_rendered_gain(planner):
+    # What the planner reports of its chosen view (TraverseReport.gain_points, from the field
+    # it rendered) is the field built afresh for that view: the evaluation weighs a decision
+    # with the planner's own figure, and a planner that reports none gets the same.
+    from planner.planner import counted_points, gain_field
+    from rovergate.geometry import camera_from_base
+    from rovergate.types import Channel
+    cfg = MissionConfig()
+    cfg.scene.bounds_m = BOUNDS
+    cfg.scene.d_scene_m = 30.0
+    ground, target = flat_ground(), grid_wall(6.0, size=1.5)
+    pts = np.vstack([ground, target, grid_wall(-6.0, size=1.5)])
+    rng = np.random.default_rng(5)
+    channels = rng.choice([Channel.GAIN, Channel.COLLISION, Channel.BOTH], len(pts))
+    occ = PlannerMap(0, make_cloud(pts, PLANNER_DTYPE, views=rng.integers(0, 4, len(pts)),
+                                   channels=channels.astype(np.uint8)))
+    planning = planner(cfg)
+    result = planning.plan(0, occ, Pose.from_xyz_yaw(0.0, 0.0, 0.0, 0.3))
+    goal = result.path.poses[-1]
+    reported = counted_points(cfg, occ, goal, planning.rendered)
+    assert np.array_equal(reported, counted_points(cfg, occ, goal))  # built afresh
+    serving = np.flatnonzero(channels & Channel.GAIN)
+    attracting = occ.serving(Channel.GAIN)
+    field = gain_field(cfg, pts[serving], novel_mask(attracting, cfg.planner.observed_min_views))
+    cam = camera_from_base(goal.matrix(), cfg.sensor, cfg.platform)
+    assert len(reported) == field.gain(field.visible(cam)) > 0
+    assert set(reported) <= set(serving) and (occ.points["views"][reported] <
+                                              cfg.planner.observed_min_views).all()
+
+
 def test_the_planner_gains_from_one_channel_and_is_blocked_by_the_other():
     """A predicted wall 6 m ahead of the rover: serving only collision checking, it blocks
     and offers no gain; serving only the gain, it attracts and blocks nothing."""

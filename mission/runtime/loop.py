@@ -109,8 +109,9 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 # step t-1 is read before this boundary, which may swap it.)
                 rejected = (transport.poll if external else transport.receive)("rejected", t - 1)
                 traverse = (transport.poll if external else transport.receive)("traverse", t - 1)
-                if traverse is not None:
-                    record.traverse.append(traverse)
+                if traverse is not None:  # (the record keeps no point indices)
+                    record.traverse.append(dataclasses.replace(
+                        traverse, gain_points=np.zeros(0, dtype=np.uint32)))
                 record.paths.append(path)
                 report = transport.receive("execution", t - 1)
                 collisions += int(report.collided)
@@ -137,7 +138,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                     report, planner_map, cfg, previous_base))
                 contacts = np.array([e.contact for e in record.executions[:-1]
                                      if e.contact is not None]).reshape(-1, 3)
-                decision = judge.decision(planner_map, path, rejected, previous_base, contacts)
+                decision = judge.decision(planner_map, path, rejected, previous_base, contacts,
+                                          None if traverse is None else traverse.gain_points)
                 record.fp_gain_share.append(decision.fp_gain_share)
                 record.rejected_by_fp.append(decision.rejected_by_fp)
             surface = transport.receive("surface", t)

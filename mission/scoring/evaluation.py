@@ -16,8 +16,9 @@ here reaches a module.
 - **Stuck.** The vehicle is stuck at pose t (t >= ``STUCK_WINDOW``) when its net displacement
   over the last ``STUCK_WINDOW`` steps is under ``STUCK_MIN_M``.
 - **The paper's decision-level measure.** Of the gain the planner rendered for the viewpoint
-  it chose (the goal of its motion), the share that comes from oracle false positives
-  (predicted points farther than delta from O*); and how many candidates it rejected as
+  it chose (the goal of its motion: the points it counted, which it reports in its
+  ``TraverseReport``), the share that comes from oracle false positives (predicted points
+  farther than delta from O*); and how many candidates it rejected as
   infeasible that were feasible on the same map without those false positives (their goal
   state free and the straight motion to it free: a lower bound, as OMPL is not re-run).
 """
@@ -29,10 +30,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from planner.planner import gain_field, novel_mask
+from planner.planner import counted_points, novel_mask
 from planner.platforms import motion_model
 from rovergate.config import MissionConfig
-from rovergate.geometry import camera_from_base, voxel_first_points
+from rovergate.geometry import voxel_first_points
 from rovergate.spatial import kdtree
 from rovergate.types import (
     Channel,
@@ -125,33 +126,27 @@ class StepEvaluator:
         return fp
 
     def decision(self, planner_map: PlannerMap, path: PlanPath, rejected: PlanPath | None,
-                 T_map_base: Pose, contacts: np.ndarray | None = None) -> Decision:
+                 T_map_base: Pose, contacts: np.ndarray | None = None,
+                 gain_points: np.ndarray | None = None) -> Decision:
         """The decision measure of one step (``T_map_base``: the pose it planned from;
         ``rejected`` None: the planner does not say what it rejected; ``contacts``: the
-        contact points the planner knew)."""
+        contact points the planner knew; ``gain_points``: the points of ``planner_map`` the
+        gain of the chosen view counted, as the planner reported them in its
+        ``TraverseReport``; None: a planner of the user's own that reports none, for which
+        they are rendered here with the planner's own function)."""
         cfg = self.cfg
         # The share of gain on what the gain saw; the blocked candidates on what blocked them
         # (the two channels of the map, one and the same but under gated-split).
-        gain_map = planner_map.serving(Channel.GAIN)
-        fp = self.false_positives(gain_map)
-        points = xyz(gain_map.points)
-        share = None if fp.any() else 0.0  # no false positive in the map: no share of gain
-        goal = path.poses[-1] if path.poses else T_map_base
-        novel = novel_mask(gain_map, cfg.planner.observed_min_views)
-        if share is None and (novel & fp).any():
-            cam = camera_from_base(goal.matrix(), cfg.sensor, cfg.platform)
-            # Only primitives within the sensor's depth range take part in the render (the
-            # z-buffer too), and all of their points lie within a voxel diagonal of it: the
-            # field of those points alone renders the same view, exactly.
-            depth = (points - cam[:3, 3]) @ cam[:3, 2]
-            near = depth <= cfg.sensor.max_range_m + cfg.planner.gain_voxel_m * np.sqrt(3)
-            field = gain_field(cfg, points[near], novel[near])
-            visible = field.visible(cam)
-            total = field.gain(visible)
-            if total > 0:
-                share = int(field.weights((novel & fp)[near])[visible].sum()) / total
-        elif share is None:
-            share = 0.0  # no novel false positive: none of the gain comes from one
+        fp = self.false_positives(planner_map)
+        serving_gain = (planner_map.points["channels"] & Channel.GAIN) != 0
+        novel = novel_mask(planner_map, cfg.planner.observed_min_views)
+        share: float | None = 0.0  # no novel false positive the gain serves: no share of it
+        if (fp & novel & serving_gain).any():
+            if gain_points is None:
+                goal = path.poses[-1] if path.poses else T_map_base
+                gain_points = counted_points(cfg, planner_map, goal)
+            share = (int(fp[gain_points].sum()) / len(gain_points) if len(gain_points)
+                     else None)  # the view had no gain to share
         blocked = None if rejected is None else 0
         planner_map = planner_map.serving(Channel.COLLISION)
         fp = self.false_positives(planner_map)
