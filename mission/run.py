@@ -23,7 +23,14 @@ from mission.scoring.report import write_report
 from planner.planner import planner_class, planner_name, planner_names
 from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.conditions import get_condition
-from rovergate.config import MissionConfig, check_values, planner_programs, save_config, to_dict
+from rovergate.config import (
+    MissionConfig,
+    changed_settings,
+    check_values,
+    planner_programs,
+    save_config,
+    to_dict,
+)
 from rovergate.errors import ConfigError, MissionFailed, UnknownNameError
 from rovergate.logs import init_logging, plural
 from rovergate.platforms import get_platform
@@ -68,9 +75,7 @@ def check_runnable(cfg: MissionConfig) -> None:
 def resumed_config(cfg: MissionConfig) -> tuple[MissionConfig, LoopState]:
     """``--resume``: the configuration and state of the mission in ``cfg.out`` (raises
     ConfigError if the command line sets anything else, or there is nothing to resume)."""
-    given = _flat(to_dict(cfg))
-    plain = _flat(to_dict(MissionConfig(out=cfg.out, resume=True, progress=cfg.progress)))
-    extra = sorted(k for k in given if given[k] != plain.get(k))
+    extra = changed_settings(cfg, MissionConfig(out=cfg.out, resume=True, progress=cfg.progress))
     if extra:
         raise ConfigError("--resume carries on the mission in --out as it was configured; "
                           "leave out " + ", ".join("--" + k.replace("_", "-") for k in extra))
@@ -80,16 +85,6 @@ def resumed_config(cfg: MissionConfig) -> tuple[MissionConfig, LoopState]:
         raise ConfigError("--resume: the mission in --out ran in process; only a process-set "
                           "mission keeps a checkpoint")
     return resumed, state
-
-
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[prefix + k] = v
-    return out
 
 
 LOCK = ".mission.lock"

@@ -620,6 +620,18 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return out
 
 
+def changed_settings(cfg: Any, base: Any) -> list[str]:
+    """The settings ``cfg`` sets differently from ``base`` (two config dataclasses of one
+    kind), as the dotted names the command line takes (``planner.n_candidates``), sorted."""
+    def flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+        return out
+    given, plain = flat(to_dict(cfg)), flat(to_dict(base))
+    return sorted(k for k in given if given[k] != plain.get(k))
+
+
 def from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
     """Build a config dataclass from a dict, naming any unknown key."""
     hints = typing.get_type_hints(cls, include_extras=True)

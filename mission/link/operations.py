@@ -197,6 +197,10 @@ class Operations:
         self._executed: set[int] = set()
         self.reconfigurations: list[dict[str, Any]] = []
 
+    def event(self, step: int, kind: str, detail: str = "") -> None:
+        """Send the ground a mission event (``mission-started``, ``mission-resumed``, ...)."""
+        self.bridge.event(step, kind, detail)
+
     # --- the step boundary ----------------------------------------------------------------
 
     def boundary(self, step: int) -> None:

@@ -51,7 +51,12 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
     after each pose. ``operations_factory`` (process set only) builds the ground link's
     :class:`mission.link.operations.Operations`. With ``checkpoint`` (a directory), the loop's
     state is saved there after every step (:mod:`mission.runtime.checkpoint`); ``resume`` is such a
-    state to carry on from. Raises :class:`rovergate.errors.MissionFailed` on a fault."""
+    state to carry on from. Raises :class:`rovergate.errors.MissionFailed` on a fault.
+
+    ``cfg`` is the launch configuration: what the mission is scored by (the steps, the scene,
+    the evaluation's tolerances), which no command changes. What a ground command can change
+    (the condition, the planner) the loop reads from one place, ``transport.cfg``, at every
+    step boundary."""
     record = resume.record if resume else MissionRecord(mode=transport.mode)
     t_start = time.perf_counter()
     wall_before = resume.record.wall_s if resume else 0.0
@@ -73,11 +78,11 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         judge = StepEvaluator(cfg, truth_surface)
         previous_base = resume.previous_base if resume else None
         if ops and resume:
-            ops.bridge.event(first, "mission-resumed",
+            ops.event(first, "mission-resumed",
                              f"the mission manager restarted; resuming at step {first} "
                              f"after {time.perf_counter() - t_start:.1f} s")
         elif ops:
-            ops.bridge.event(0, "mission-started",
+            ops.event(0, "mission-started",
                              f"{cfg.scene.name}/{cfg.start}, {cfg.platform}, {cfg.condition}, "
                              f"{cfg.steps} steps")
         if resume:
@@ -88,7 +93,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         for t in range(first, cfg.steps + 1):
             if STOP.is_set():  # Ctrl-C or SIGTERM: stop at the step boundary
                 raise KeyboardInterrupt
-            external = bool((ops.cfg if ops else cfg).planner.command)
+            external = bool(transport.cfg.planner.command)
             if ops:
                 t_boundary = time.perf_counter()
                 ops.boundary(t)  # the link, and ground commands (they may pause or abort)
@@ -97,7 +102,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                     break
                 # A pause or a restart at the boundary is not the loop's step time.
                 t_step += time.perf_counter() - t_boundary
-                condition = ops.cfg.condition  # a ground command may have changed it
+                condition = transport.cfg.condition  # a ground command may have changed it
             if not record.conditions or record.conditions[-1][1] != condition:
                 record.conditions.append((t, condition))
             cov = record.coverage[-1] if record.coverage else 0.0
@@ -161,7 +166,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                 record.wall_s = wall_before + time.perf_counter() - t_start
                 save_checkpoint(LoopState(
                     t + 1, record, collisions, previous_base, condition,
-                    ops.cfg if ops else cfg, ops.snapshot() if ops else None,
+                    transport.cfg, ops.snapshot() if ops else None,
                     transport.snapshot()), checkpoint)
         else:
             state = "done"

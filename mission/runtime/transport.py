@@ -36,6 +36,13 @@ class Transport(Protocol):
     mode: str
     """``in-process`` or ``processes`` (recorded in metrics.json)."""
 
+    @property
+    def cfg(self) -> MissionConfig:
+        """The mission's configuration as it stands: the one the loop reads at each step
+        boundary (a ground command changes the process set's there; in process it is the
+        launch configuration throughout)."""
+        ...
+
     def start(self) -> None:
         """Bring every module up; return when all are ready for step 0."""
         ...
