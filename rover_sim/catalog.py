@@ -12,6 +12,8 @@ by farthest-point sampling from the pose nearest the centre, each heading for th
 from __future__ import annotations
 
 import functools
+import importlib.metadata
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +24,8 @@ from rover_sim import suite
 from rover_sim.scene import Scene
 from rovergate.config import FlyerConfig, RoverConfig, SceneConfig
 from rovergate.errors import ConfigError, UnknownNameError
+
+log = logging.getLogger("rovergate.scenes")
 
 START_NAMES = ("a", "b", "c", "d", "e")
 START_GRID_M = 1.0
@@ -65,6 +69,38 @@ SUITE = tuple(n for n, e in SCENES.items() if e.kind == "procedural")
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 
+#: The entry-point group through which a package of your own adds scenes (as
+#: ``rovergate.planners`` adds planners): in its pyproject.toml,
+#: ``[project.entry-points."rovergate.scenes"]`` then ``name = "package.module:build"``, a
+#: function of no arguments that returns a :class:`rover_sim.scene.Scene` (for a mesh,
+#: :func:`rover_sim.mesh_scene.load_mesh_scene`). Its starts are chosen here when it places
+#: none, as for every scene.
+SCENE_GROUP = "rovergate.scenes"
+
+
+def _plugin(ep: importlib.metadata.EntryPoint) -> Callable[[], Scene]:
+    def build() -> Scene:
+        scene = ep.load()()
+        if not isinstance(scene, Scene):
+            raise ConfigError(f"scene {ep.name!r} ({ep.value}) built a "
+                              f"{type(scene).__name__}, not a rover_sim.scene.Scene; return one")
+        return scene
+    return build
+
+
+def catalog() -> dict[str, CatalogEntry]:
+    """Every scene by name: :data:`SCENES`, then those installed packages register under
+    :data:`SCENE_GROUP` (kind ``plugin``; a name the suite has is not theirs to take: such an
+    entry is left out, with a warning)."""
+    found = dict(SCENES)
+    for ep in importlib.metadata.entry_points(group=SCENE_GROUP):
+        if ep.name in SCENES:
+            log.warning("scene entry point %r of %s is a suite scene's name; it is ignored",
+                        ep.name, ep.value)
+        else:
+            found[ep.name] = CatalogEntry(_plugin(ep), "plugin")
+    return found
+
 
 def _is_path(name: str) -> bool:
     return "/" in name or Path(name).suffix.lower() in MESH_SUFFIXES
@@ -73,14 +109,15 @@ def _is_path(name: str) -> bool:
 @functools.lru_cache(maxsize=4)
 def _load(name: str, up_axis: str, scale: float, region_m: float,
           bounds: tuple[float, ...] | None) -> Scene:
-    if name in SCENES:
+    scenes = catalog()
+    if name in scenes:
         if bounds is not None:
             # A resolved config names the scene's own box: that is the scene already built
             # when the config was resolved (building it again cost a study 1.3 s per run).
             own = _load(name, up_axis, scale, region_m, None)
             if tuple(float(v) for v in own.bounds_m) == bounds:
                 return own
-        scene = SCENES[name].build()
+        scene = scenes[name].build()
         if not scene.starts:
             scene.starts = choose_starts(scene)
         if bounds is not None:
@@ -92,7 +129,7 @@ def _load(name: str, up_axis: str, scale: float, region_m: float,
                                 bounds_m=bounds)
         scene.starts = choose_starts(scene)
         return scene
-    raise UnknownNameError(f"unknown scene {name!r}; choose one of: {', '.join(SCENES)}, or "
+    raise UnknownNameError(f"unknown scene {name!r}; choose one of: {', '.join(scenes)}, or "
                            "pass the path of a mesh file (OBJ, PLY, STL, GLB)")
 
 

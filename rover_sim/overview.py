@@ -14,7 +14,7 @@ import numpy as np
 import tyro
 
 from rover_sim.bullet import pb
-from rover_sim.catalog import SCENES, load_scene
+from rover_sim.catalog import catalog, load_scene
 from rover_sim.scene import Scene
 from rover_sim.world import add_scene
 from rovergate.config import SceneConfig
@@ -103,12 +103,13 @@ class ScenesConfig:
 
 
 def main(args: ScenesConfig) -> int:
-    names = args.names or list(SCENES)
+    scenes = catalog()
+    names = args.names or list(scenes)
     if args.render:
         args.render.mkdir(parents=True, exist_ok=True)
     for name in names:
         scene = load_scene(SceneConfig(name=name, up_axis=args.up_axis, scale=args.scale))
-        kind = SCENES[name].kind if name in SCENES else "mesh file"
+        kind = scenes[name].kind if name in scenes else "mesh file"
         print("\n".join(describe(scene, kind)), flush=True)
         if args.render:
             out = args.render / f"{scene.name}.png"

@@ -1,6 +1,7 @@
-"""Planners from a package of the user's own, registered through the ``rovergate.planners``
-entry-point group (``planner/planner.py``, ``PLANNER_GROUP``): the test builds and installs
-such a package into a directory of its own, and a mission runs its planner."""
+"""Planners and scenes from a package of the user's own, registered through the
+``rovergate.planners`` and ``rovergate.scenes`` entry-point groups (``planner/planner.py``,
+``PLANNER_GROUP``; ``rover_sim/catalog.py``, ``SCENE_GROUP``): the test builds and installs
+such a package into a directory of its own, and a mission runs its planner on its scene."""
 
 from __future__ import annotations
 
@@ -32,6 +33,18 @@ class Logged(GreedyPlanner):
 
 class NotAPlanner:
     pass
+
+
+def small_crater():
+    """The suite's crater, under the package's own name."""
+    from rover_sim import suite
+    scene = suite.build_crater()
+    scene.name = "small_crater"
+    return scene
+
+
+def not_a_scene():
+    return "crater"
 '''
 
 PYPROJECT = '''
@@ -47,6 +60,11 @@ version = "0.1"
 logged = "rg_test_planner:Logged"
 notaplanner = "rg_test_planner:NotAPlanner"
 beam = "rg_test_planner:Logged"
+
+[project.entry-points."rovergate.scenes"]
+small_crater = "rg_test_planner:small_crater"
+notascene = "rg_test_planner:not_a_scene"
+crater = "rg_test_planner:small_crater"
 
 [tool.setuptools]
 py-modules = ["rg_test_planner"]
@@ -98,3 +116,28 @@ def test_a_registered_planner_that_is_not_one_is_one_line(installed, tmp_path):
                         "--out", str(tmp_path / "n")],
                        capture_output=True, text=True, timeout=120, env=installed)
     assert r.returncode == 2 and "choose one of: auto, beam, greedy, logged" in r.stderr
+
+
+def test_a_scene_registered_by_another_package_is_listed_and_runs_in_a_mission(installed,
+                                                                              tmp_path):
+    r = subprocess.run([*ROVERGATE, "scenes", "small_crater"], capture_output=True, text=True,
+                       timeout=240, env=installed)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.startswith("small_crater") and "plugin" in r.stdout.splitlines()[0]
+    # A suite name is not the package's to take: the warning says so, crater stays crater.
+    assert "'crater' of rg_test_planner:small_crater is a suite scene's name" in r.stderr
+    r = subprocess.run([*ROVERGATE, "run", "--scene.name", "small_crater", "--planner.name",
+                        "logged", "--steps", "3", "--in-process", "--no-progress",
+                        "--no-record", "--out", str(tmp_path / "m")],
+                       capture_output=True, text=True, timeout=240, env=installed)
+    assert r.returncode == 0, r.stderr[-3000:]
+    config = json.loads((tmp_path / "m" / "config.json").read_text())
+    assert config["scene"]["name"] == "small_crater" and config["scene"]["d_scene_m"] > 0
+    assert len(json.loads((tmp_path / "m" / "metrics.json").read_text())["coverage"]) == 4
+    r = subprocess.run([*ROVERGATE, "run", "--scene.name", "notascene", "--steps", "2",
+                        "--in-process", "--no-progress", "--no-record",
+                        "--out", str(tmp_path / "n")],
+                       capture_output=True, text=True, timeout=120, env=installed)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert r.stderr.strip().splitlines()[-1].endswith(
+        "built a str, not a rover_sim.scene.Scene; return one"), r.stderr[-2000:]
