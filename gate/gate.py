@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from gate.filter import ObservationGate, PoseGate, RayGate, SplitGate
 from gate.views import ViewCounter, as_views
-from rovergate.conditions import get_condition
+from rovergate.conditions import CONDITIONS, get_condition, registered
 from rovergate.config import GateConfig, SensorConfig
 from rovergate.geometry import in_region
 from rovergate.spatial import kdtree
@@ -68,7 +68,7 @@ class Gate:
         self.reference_xyz = reference_xyz
         self._reference_tree = cKDTree(reference_xyz) if reference_xyz is not None else None
         self.delta_m = cfg.oracle_delta_m(d_scene_m)
-        self.variant = VARIANTS.get(condition)  # None: the map holds no prediction
+        self.variant = variant_of(condition)  # None: the map holds no prediction
         self.filter = (self.variant or VARIANTS["gated"]).make_filter(
             cfg, cfg.epsilon_m(d_scene_m), sensor.min_range_m, sensor.max_range_m)
         self.views = ViewCounter(sensor.min_range_m, sensor.max_range_m, view_tolerance_m)
@@ -128,17 +128,21 @@ def _all(pred: np.ndarray) -> np.ndarray:
     return np.full(len(pred), Channel.BOTH, dtype=np.uint8)
 
 
-def _everything(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+def everything(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    """All of the prediction, to both uses (``learned``)."""
     return Selection(_all(pred))
 
 
-def _without_unsupported(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+def without_unsupported(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    """The prediction less what the gate's filter finds unsupported (``gated`` and its
+    ``-ray`` and ``-pose`` variants)."""
     unsupported = gate.filter.unsupported(pred, surface)  # U_t (equation 4) or its variant
     return Selection(np.where(unsupported, 0, Channel.BOTH).astype(np.uint8),
                      suppressed=int(unsupported.sum()))
 
 
-def _split(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+def split_channels(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    """Each predicted point to the uses its evidence allows (``gated-split``)."""
     assert isinstance(gate.filter, SplitGate)
     no_gain, no_collision = gate.filter.withheld(pred, surface)
     channels = _all(pred) - (no_gain * Channel.GAIN + no_collision * Channel.COLLISION).astype(
@@ -146,17 +150,20 @@ def _split(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
     return Selection(channels, suppressed=int(no_gain.sum()))
 
 
-def _without_false_positives(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+def without_false_positives(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    """The prediction less its oracle false positives (``learned-fp``)."""
     tags = oracle_tags(pred, gate.reference_xyz, gate.delta_m, gate._reference_tree)
     return Selection(np.where(tags.false_positive, 0, Channel.BOTH).astype(np.uint8))
 
 
-def _with_false_negatives(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+def with_false_negatives(gate: Gate, pred: np.ndarray, surface: np.ndarray) -> Selection:
+    """All of the prediction and the oracle's false negatives beside it (``learned+fn``)."""
     tags = oracle_tags(pred, gate.reference_xyz, gate.delta_m, gate._reference_tree)
     return Selection(_all(pred), extra=tags.false_negative_points)
 
 
-def _frustum(cfg: GateConfig, eps: float, near: float, far: float) -> ObservationGate:
+def frustum(cfg: GateConfig, eps: float, near: float, far: float) -> ObservationGate:
+    """The frustum gate of equation 4 with the mission's K."""
     return ObservationGate(cfg.k, eps, near, far)
 
 
@@ -175,15 +182,24 @@ class Variant:
 #: The variant of each condition of :data:`rovergate.conditions.CONDITIONS` that passes on
 #: the prediction, by its name (a test holds the two tables together).
 VARIANTS: dict[str, Variant] = {
-    "learned": Variant(_frustum, _everything),
-    "learned-fp": Variant(_frustum, _without_false_positives),
-    "learned+fn": Variant(_frustum, _with_false_negatives),
-    "gated": Variant(_frustum, _without_unsupported),
+    "learned": Variant(frustum, everything),
+    "learned-fp": Variant(frustum, without_false_positives),
+    "learned+fn": Variant(frustum, with_false_negatives),
+    "gated": Variant(frustum, without_unsupported),
     "gated-ray": Variant(lambda cfg, eps, near, far: RayGate(
-        cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg), _without_unsupported),
+        cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg), without_unsupported),
     "gated-pose": Variant(lambda cfg, eps, near, far: PoseGate(
-        cfg.k, eps, near, far, cfg.pose_sigmas), _without_unsupported),
+        cfg.k, eps, near, far, cfg.pose_sigmas), without_unsupported),
     "gated-split": Variant(lambda cfg, eps, near, far: SplitGate(
         cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg,
-        cfg.split_baseline_m), _split),
+        cfg.split_baseline_m), split_channels),
 }
+
+
+def variant_of(condition: str) -> Variant | None:
+    """The variant of a condition: a built-in one's from :data:`VARIANTS`, a registered
+    one's from its package (:data:`rovergate.conditions.CONDITION_GROUP`)."""
+    if condition in CONDITIONS:
+        return VARIANTS.get(condition)
+    variant: Variant | None = registered(condition).variant
+    return variant

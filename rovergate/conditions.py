@@ -28,9 +28,15 @@ by it (PoseGate); U_2view_t needs rays from two camera positions apart (SplitGat
 
 from __future__ import annotations
 
+import functools
+import importlib.metadata
+import logging
 from dataclasses import dataclass
+from typing import Any
 
-from rovergate.errors import UnknownNameError
+from rovergate.errors import ConfigError, UnknownNameError
+
+log = logging.getLogger("rovergate.conditions")
 
 
 @dataclass(frozen=True)
@@ -63,9 +69,53 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in [
 ]}
 
 
+#: The entry-point group through which a package of your own adds a condition (as
+#: ``rovergate.planners`` adds planners): in its pyproject.toml,
+#: ``[project.entry-points."rovergate.conditions"]`` then ``name = "package.module:OBJECT"``,
+#: an object with a ``condition`` (a :class:`Condition` of that name) and a ``variant`` (a
+#: :class:`gate.gate.Variant`: its filter and what it keeps of the prediction; None for a
+#: condition that passes on no prediction). A built-in name stays the built-in one.
+CONDITION_GROUP = "rovergate.conditions"
+
+
+@functools.cache
+def _registered() -> dict[str, importlib.metadata.EntryPoint]:
+    found = {}
+    for ep in importlib.metadata.entry_points(group=CONDITION_GROUP):
+        if ep.name in CONDITIONS:
+            log.warning("condition entry point %r of %s is a built-in name; it is ignored",
+                        ep.name, ep.value)
+        else:
+            found[ep.name] = ep
+    return found
+
+
+@functools.cache
+def registered(name: str) -> Any:
+    """The object a package registered as condition ``name`` (its ``condition`` and
+    ``variant``), checked; raises :class:`ConfigError` in one line when it is not one."""
+    ep = _registered()[name]
+    obj = ep.load()
+    condition = getattr(obj, "condition", None)
+    if not isinstance(condition, Condition) or condition.name != name \
+            or not hasattr(obj, "variant"):
+        raise ConfigError(f"condition {name!r} ({ep.value}) needs a `condition` (a "
+                          f"rovergate.conditions.Condition named {name!r}) and a `variant` "
+                          "(a gate.gate.Variant, or None)")
+    return obj
+
+
+def condition_names() -> list[str]:
+    """Every condition's name: the built-in ones, then those installed packages register."""
+    return [*CONDITIONS, *_registered()]
+
+
 def get_condition(name: str) -> Condition:
     """The named condition; raises :class:`UnknownNameError` listing the valid ones."""
-    if name not in CONDITIONS:
-        raise UnknownNameError(f"unknown condition {name!r}; choose one of: "
-                               f"{', '.join(CONDITIONS)} (--condition)")
-    return CONDITIONS[name]
+    if name in CONDITIONS:
+        return CONDITIONS[name]
+    if name in _registered():
+        condition: Condition = registered(name).condition
+        return condition
+    raise UnknownNameError(f"unknown condition {name!r}; choose one of: "
+                           f"{', '.join(condition_names())} (--condition)")

@@ -45,6 +45,24 @@ def small_crater():
 
 def not_a_scene():
     return "crater"
+
+
+class Eager:
+    """The frustum gate at K = 1: a prediction is withheld after one frame without support."""
+
+    from gate.filter import ObservationGate
+    from gate.gate import Variant, without_unsupported
+    from rovergate.conditions import Condition
+    condition = Condition("gated-eager", "the frustum gate at K = 1", needs_prediction=True,
+                          needs_truth=False, withholds=True)
+    variant = Variant(lambda cfg, eps, near, far: Eager.ObservationGate(1, eps, near, far),
+                      without_unsupported)
+
+
+class Misnamed:
+    from rovergate.conditions import Condition
+    condition = Condition("other", "a condition under another name", True, False)
+    variant = None
 '''
 
 PYPROJECT = '''
@@ -65,6 +83,10 @@ beam = "rg_test_planner:Logged"
 small_crater = "rg_test_planner:small_crater"
 notascene = "rg_test_planner:not_a_scene"
 crater = "rg_test_planner:small_crater"
+
+[project.entry-points."rovergate.conditions"]
+gated-eager = "rg_test_planner:Eager"
+misnamed = "rg_test_planner:Misnamed"
 
 [tool.setuptools]
 py-modules = ["rg_test_planner"]
@@ -141,3 +163,22 @@ def test_a_scene_registered_by_another_package_is_listed_and_runs_in_a_mission(i
     assert r.returncode == 2, r.stderr[-2000:]
     assert r.stderr.strip().splitlines()[-1].endswith(
         "built a str, not a rover_sim.scene.Scene; return one"), r.stderr[-2000:]
+
+
+def test_a_condition_registered_by_another_package_runs_in_a_mission_and_gates(installed,
+                                                                               tmp_path):
+    r = subprocess.run([*ROVERGATE, "run", "--condition", "gated-eager", "--steps", "6",
+                        "--no-progress", "--no-record", "--out", str(tmp_path / "m")],
+                       capture_output=True, text=True, timeout=240, env=installed)
+    assert r.returncode == 0, r.stderr[-3000:]
+    metrics = json.loads((tmp_path / "m" / "metrics.json").read_text())
+    assert metrics["conditions"] == [[0, "gated-eager"]]
+    # Its gate ran in the gate's process: it withheld part of the prediction (K = 1).
+    assert sum(metrics["suppressed_per_step"]) > 0, metrics["suppressed_per_step"]
+    r = subprocess.run([*ROVERGATE, "run", "--condition", "misnamed", "--steps", "2",
+                        "--in-process", "--no-progress", "--no-record",
+                        "--out", str(tmp_path / "n")],
+                       capture_output=True, text=True, timeout=120, env=installed)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "condition 'misnamed' (rg_test_planner:Misnamed) needs a `condition`" in \
+        r.stderr.strip().splitlines()[-1], r.stderr[-2000:]
