@@ -15,6 +15,7 @@ from mission.study.spec import StudyConfig, run_specs
 from mission.study.tables import (
     PLACEBO_LABEL,
     bh,
+    bootstrap_ci,
     failure_modes,
     holm,
     identical_runs,
@@ -22,6 +23,7 @@ from mission.study.tables import (
     per_start_effects,
     placebo_effects,
     robustness,
+    rows_from_csv,
     sign_test,
     signflip_p,
     strata,
@@ -29,6 +31,7 @@ from mission.study.tables import (
     table2,
     write_tables,
 )
+from rovergate.errors import ConfigError
 
 
 def run(start, condition, rep, c_t, auc=0.5, s70=10, scene="s", **extra) -> dict:
@@ -126,6 +129,59 @@ def test_holm_matches_the_hand_computation():
     assert holm([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
     assert holm([0.5, 0.6]) == pytest.approx([1.0, 1.0])      # capped at 1
     assert holm([0.25]) == pytest.approx([0.25])
+
+
+# The study's statistics were written by hand until issue 28 moved them to scipy and
+# statsmodels. The hand-written versions, kept here as the reference: the libraries must give
+# the committed tables' numbers.
+
+def _hand_bootstrap_ci(v, resamples, seed=0):
+    v = np.asarray(v, dtype=np.float64)
+    idx = np.random.default_rng(seed).integers(0, len(v), size=(resamples, len(v)))
+    means = v[idx].mean(axis=1)
+    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+
+
+def _hand_signflip_p(d):
+    d = np.asarray(d, dtype=np.float64)
+    bits = (np.arange(2 ** len(d))[:, None] >> np.arange(len(d))) & 1
+    stats = np.abs(((1 - 2 * bits) * d).mean(axis=1))
+    observed = abs(d.mean())
+    return float(np.mean(stats >= observed - 1e-12 * max(1.0, observed)))
+
+
+def _hand_holm(p):
+    p = np.asarray(p, dtype=np.float64)
+    order = np.argsort(p, kind="stable")
+    scaled = p[order] * (len(p) - np.arange(len(p)))
+    adjusted = np.empty_like(p)
+    adjusted[order] = np.minimum(np.maximum.accumulate(scaled), 1.0)
+    return adjusted
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_libraries_give_the_hand_written_statistics(seed):
+    rng = np.random.default_rng(seed)
+    for n in (2, 3, 6, 11, 30):
+        v = np.round(rng.normal(0.0, 0.05, size=n), 3)  # deltas as the tables hold them
+        # The same draws from the same generator: the same interval, but for the last bits
+        # of a double (scipy sums the means in another order).
+        assert bootstrap_ci(v, 2000, seed) == pytest.approx(_hand_bootstrap_ci(v, 2000, seed),
+                                                             abs=1e-12)
+        if n <= 16:
+            assert signflip_p(v) == pytest.approx(_hand_signflip_p(v), abs=1e-12)
+        p = rng.uniform(0, 0.2, size=n)
+        p[rng.integers(n)] = p[0]  # a tie
+        assert holm(p) == pytest.approx(_hand_holm(p), abs=1e-15)
+    ties = np.array([0.1, -0.1, 0.1, -0.1, 0.2])  # sums equal in another order
+    assert signflip_p(ties) == pytest.approx(_hand_signflip_p(ties))
+
+
+def test_signflip_p_beyond_the_exact_limit_samples_and_stays_near_the_exact_value():
+    d = np.random.default_rng(3).normal(0.02, 0.05, size=18)
+    exact = _hand_signflip_p(d)  # 2^18 assignments, by hand
+    assert signflip_p(d) == pytest.approx(exact, abs=0.01)
+    assert signflip_p(d) == signflip_p(d)  # seeded
 
 
 def test_benjamini_hochberg_matches_the_hand_computation():
@@ -329,3 +385,15 @@ def test_write_tables_writes_the_new_columns_and_figures(tmp_path: Path):
     assert "## Without the runs that were stuck or collided" in table
     assert summary["robustness"] == {} and "Not computed" in table  # half lack stuck_steps
     assert "Bit-identical gated runs" in (tmp_path / "table2.md").read_text()
+
+    # A committed study keeps runs.csv and coverage_curves.csv, not its runs: the tables
+    # rewritten from those two files are the tables written from the runs.
+    again = tmp_path / "committed"
+    again.mkdir()
+    for name in ("runs.csv", "coverage_curves.csv", "study.json"):
+        (again / name).write_bytes((tmp_path / name).read_bytes())
+    assert write_tables(cfg, specs, again, loaded=rows_from_csv(again)) == summary
+    for name in ("runs.csv", "coverage_curves.csv", "table1.md", "table2.md"):
+        assert (again / name).read_text() == (tmp_path / name).read_text(), name
+    with pytest.raises(ConfigError, match="--tables-only: .*coverage_curves.csv missing"):
+        rows_from_csv(tmp_path / "runs")

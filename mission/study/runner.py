@@ -25,6 +25,10 @@ each cell's tables (the layout above, without study.json) go to ``<platform>-<pr
 the study's own outputs are :mod:`mission.study.validation`'s: runs.csv over every cell,
 validation.md, validation_*.png and summary.json.
 
+A held-out test (``--select-from DIR --seeds 3..12``, :mod:`mission.study.heldout`) runs only
+the starts the paper's rule selects from the study in DIR, declares them in ``selection.json``
+before any run, and adds ``heldout.md``: the new seeds' effects beside the selected ones.
+
 Resuming: a run directory appears only complete (it is written under a temporary name and
 renamed), so a re-run with the same ``--out`` skips every finished run, and a killed study
 loses at most the runs that were in flight.
@@ -49,6 +53,7 @@ from mission.study.spec import (
     cells,
     check_study,
     mission_config,
+    parse_seeds,
     run_specs,
 )
 from mission.study.worker import init_worker, run_one
@@ -65,7 +70,7 @@ def _settings(cfg: StudyConfig) -> dict:
     """What must match for a study directory to be resumed."""
     d = to_dict(cfg)
     for k in ("workers", "torch_threads", "out", "bootstrap", "progress", "preset", "record",
-              "cluster"):
+              "cluster", "tables_only"):
         d.pop(k)
     d["mission"] = _without_recording(d["mission"])
     # A study of one platform, nominal, saves its settings as studies did before cells.
@@ -85,7 +90,10 @@ def _normalised(saved: dict | None) -> dict | None:
         mission = to_dict(from_dict(MissionConfig, saved["mission"]))
     except Exception:  # not ours to judge here: it simply does not match
         return saved
-    return {**saved, "mission": _without_recording(mission)}
+    # Study settings added since (--seeds, --select-from): those runs had their defaults.
+    added = {k: v for k, v in _settings(StudyConfig()).items()
+             if k not in saved and k not in ("platform", "profiles")}
+    return {**added, **saved, "mission": _without_recording(mission)}
 
 
 #: Mission settings that change what is written or served beside a run, never its figures.
@@ -114,10 +122,31 @@ def _terminate(signum, frame) -> None:
     raise KeyboardInterrupt  # leaving the pool's context terminates its workers
 
 
+def _tables_only(cfg: StudyConfig, out: Path, specs: list, sessions: list) -> int:
+    """--tables-only: the tables again from OUT/runs.csv and OUT/coverage_curves.csv."""
+    if cells(cfg):
+        raise ConfigError("--tables-only rewrites a study of one platform and profile; a study "
+                          "of cells needs its run directories (re-run it with the same --out)")
+    from mission.study.tables import rows_from_csv, write_tables
+    loaded = rows_from_csv(out)
+    summary = write_tables(cfg, specs, out, sessions=sessions, loaded=loaded)
+    if cfg.select_from:
+        from mission.study.heldout import declare, parse_seeds, write_heldout
+        decl = declare(cfg.select_from, out, parse_seeds(cfg.seeds))
+        write_heldout(cfg, specs, out, decl, summary, rows=loaded[0])
+    log.info("tables of %d runs rewritten in %s from runs.csv and coverage_curves.csv",
+             len(loaded[0]), out)
+    return 0
+
+
 def main(cfg: StudyConfig) -> int:
     init_logging("study")
     signal.signal(signal.SIGTERM, _terminate)
     cfg = check_study(cfg)
+    only = None
+    if cfg.select_from:  # refused before anything is written
+        from mission.study.heldout import check
+        only = check(cfg)
     out = Path(cfg.out)
     runs_dir = out / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
@@ -135,17 +164,26 @@ def main(cfg: StudyConfig) -> int:
         sessions = saved.get("sessions", [])
     else:
         sessions = []
+    if cfg.tables_only:
+        return _tables_only(cfg, out, run_specs(cfg, only), sessions)
     for leftover in runs_dir.glob(".*.tmp-*"):  # runs that were in flight when killed
         shutil.rmtree(leftover, ignore_errors=True)
 
-    specs = run_specs(cfg)
+    decl = None
+    if cfg.select_from:  # declared before any run, and checked again on every resume
+        from mission.study.heldout import declare
+        decl = declare(cfg.select_from, out, parse_seeds(cfg.seeds))
+        log.info("held-out test: %d starts selected from %s (%s), seeds %s: see %s",
+                 len(decl["starts"]), cfg.select_from, ", ".join(decl["starts"]), cfg.seeds,
+                 out / "selection.json")
+    specs = run_specs(cfg, only)
     done = {p.name for p in runs_dir.iterdir() if (p / "metrics.json").exists()}
     todo = [s for s in specs if s.id not in done]
     log.info("%d runs: %d finished before, %d to run on %s (out: %s)", len(specs),
              len(specs) - len(todo), len(todo),
              f"the Dask cluster at {cfg.cluster}" if cfg.cluster else f"{cfg.workers} workers",
              out)
-    if cfg.filter_reps > cfg.reps:
+    if cfg.filter_reps > cfg.reps and not cfg.seeds:
         log.info("`learned` and the gates run %d times a start (--filter-reps %d, for Table 2), "
                  "the other conditions %d (--reps)", cfg.filter_reps, cfg.filter_reps, cfg.reps)
     t0 = time.perf_counter()
@@ -193,6 +231,9 @@ def main(cfg: StudyConfig) -> int:
     else:
         from mission.study.tables import write_tables
         summary = write_tables(cfg, specs, out)
+    if decl is not None:
+        from mission.study.heldout import write_heldout
+        summary = write_heldout(cfg, specs, out, decl, summary)
     wall = sum(s["wall_s"] for s in sessions)
     log.info("study: %d runs in %.1f min of wall time over %d session(s); tables in %s",
              summary["runs"], wall / 60, len(sessions), out)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -39,6 +40,15 @@ class StudyConfig:
     filter_reps: int = 3
     """Repetitions of `learned` and the gates on every start, for Table 2: they run
     max(--reps, --filter-reps) times (--filter-reps 0: --reps times)."""
+    seeds: str = ""
+    """The seeds every condition runs, as A..B (inclusive), a comma list, or both (3..12):
+    a design of new seeds, over --reps and --filter-reps. Empty: repetition r runs with seed
+    r for r < --reps (--filter-reps for `learned` and the gates)."""
+    select_from: str = ""
+    """A finished study's directory (its runs.csv, e.g. docs/results): run only the starts
+    the paper's rule selects from its runs (the learned baseline's largest failures), declared
+    in OUT/selection.json before any run, and report them in OUT/heldout.md. With --seeds it
+    never ran, this is the held-out test of the targeted claim (mission/study/heldout.py)."""
     steps: int = 100
     """Planning steps per run (T; each run records T + 1 coverage values)."""
     platform: tuple[str, ...] = ("flyer",)
@@ -66,6 +76,10 @@ class StudyConfig:
     """Directory of the study (see the module docstring); re-running resumes it."""
     bootstrap: int = 10_000
     """Paired bootstrap resamples for the confidence intervals."""
+    tables_only: bool = False
+    """Run nothing: rewrite OUT's tables, plots and summary.json from its runs.csv and
+    coverage_curves.csv (a committed study keeps those, not its run directories), e.g. after
+    a release changed the tables. The settings must match OUT/study.json as for a resume."""
     progress: bool = True
     """Show a progress bar with an ETA."""
     record: bool = False
@@ -92,7 +106,7 @@ OWNED_MISSION_FLAGS: dict[str, str] = {
     "scene.bounds-m": "the study takes it from each scene; leave it out",
     "start": "use --starts {value}",
     "condition": "use --conditions {value}",
-    "seed": "repetition r runs with seed r; use --reps N for more seeds",
+    "seed": "repetition r runs with seed r; use --reps N for more seeds, or --seeds A..B",
     "out": "use --out {value} (each run goes to OUT/runs/<id>)",
     "in-process": "every run is in process; leave it out",
     "progress": "use --progress or --no-progress (the study's progress bar)",
@@ -272,22 +286,44 @@ def check_study(cfg: StudyConfig) -> StudyConfig:
                 check_runnable(mission_config(
                     cfg, RunSpec(cfg.scenes[0], cfg.starts[0], c, 0, platform, profile),
                     Path(cfg.out)))
+    if cfg.seeds:
+        parse_seeds(cfg.seeds)
+    if cfg.select_from and not cfg.seeds:
+        raise ConfigError("--select-from needs --seeds the source study never ran (e.g. "
+                          "--seeds 3..12): measured on the runs it selected from, the "
+                          "selection's effect is inflated by regression to the mean")
     workers = cfg.workers or os.cpu_count() or 1
     return replace(cfg, conditions=conditions, workers=workers)
 
 
-def run_specs(cfg: StudyConfig) -> list[RunSpec]:
-    """Every run of the study, in a fixed order."""
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """``"3..12"`` (inclusive), ``"3,5,7"`` or a mix (``"3..5,9"``), as sorted unique seeds."""
+    seeds: set[int] = set()
+    for part in text.replace(" ", "").split(","):
+        m = re.fullmatch(r"(\d+)(?:\.\.(\d+))?", part)
+        if not m or (m.group(2) is not None and int(m.group(2)) < int(m.group(1))):
+            raise ConfigError(f"--seeds {text!r}: write A..B (inclusive, A <= B), a comma "
+                              "list, or both, e.g. 3..12 or 3..7,20")
+        seeds.update(range(int(m.group(1)), int(m.group(2) or m.group(1)) + 1))
+    return tuple(sorted(seeds))
+
+
+def run_specs(cfg: StudyConfig, only: list[tuple[str, str]] | None = None) -> list[RunSpec]:
+    """Every run of the study, in a fixed order; with ``only``, of those (scene, start)
+    pairs alone (a held-out test's selection: :func:`mission.study.heldout.selected_starts`)."""
+    seeds = parse_seeds(cfg.seeds) if cfg.seeds else None
     specs = []
     for platform, profile in cells(cfg) or [("", "")]:
         for scene in cfg.scenes:
             for start in cfg.starts:
+                if only is not None and (scene, start) not in set(only):
+                    continue
                 for condition in cfg.conditions:
                     reps = cfg.reps
                     if condition == "learned" or get_condition(condition).withholds:
                         reps = max(reps, cfg.filter_reps)
                     specs.extend(RunSpec(scene, start, condition, r, platform, profile)
-                                 for r in range(reps))
+                                 for r in (seeds if seeds is not None else range(reps)))
     return specs
 
 

@@ -47,7 +47,8 @@ from typing import TYPE_CHECKING
 
 import matplotlib
 import numpy as np
-from scipy.stats import binomtest, false_discovery_control
+from scipy.stats import binomtest, bootstrap, false_discovery_control, permutation_test
+from statsmodels.stats.multitest import multipletests
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -89,15 +90,18 @@ FAILURE_COUNTS = (("collisions", "collisions, all"),
 
 
 def bootstrap_ci(values: np.ndarray, resamples: int, seed: int = 0) -> tuple[float, float]:
-    """Percentile 95% interval of the mean of ``values`` under resampling with replacement."""
+    """Percentile 95% interval of the mean of ``values`` under resampling with replacement
+    (:func:`scipy.stats.bootstrap`, one batch of ``resamples`` draws from a generator seeded
+    ``seed``)."""
     v = np.asarray(values, dtype=np.float64)
     if len(v) == 0:
         return float("nan"), float("nan")
-    if len(v) == 1:
+    if len(v) == 1 or np.all(v == v[0]):  # nothing to resample: the interval is the value
         return float(v[0]), float(v[0])
-    idx = np.random.default_rng(seed).integers(0, len(v), size=(resamples, len(v)))
-    means = v[idx].mean(axis=1)
-    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+    ci = bootstrap((v,), np.mean, n_resamples=resamples, method="percentile",
+                   confidence_level=0.95, rng=np.random.default_rng(seed),
+                   vectorized=True).confidence_interval
+    return float(ci.low), float(ci.high)
 
 
 def _mean(x) -> float | None:
@@ -153,6 +157,45 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
         })
         curves.setdefault(s.condition, []).append(m["coverage"])
     rows.sort(key=lambda r: (r["scene"], r["start"], r["condition"], r["rep"]))
+    return rows, curves
+
+
+def _value(text: str):
+    """A runs.csv cell as load_rows wrote it: empty is None, then bool, int, float, text."""
+    if text == "":
+        return None
+    if text in ("True", "False"):
+        return text == "True"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def rows_from_csv(out: Path) -> tuple[list[dict], dict[str, list]]:
+    """:func:`load_rows`'s rows and curves read back from ``out/runs.csv`` and
+    ``out/coverage_curves.csv`` (a committed study's, whose run directories are not kept). The
+    curves come back with the 5 decimals the CSV holds; the metrics at full precision."""
+    from rovergate.errors import ConfigError
+    paths = [Path(out) / "runs.csv", Path(out) / "coverage_curves.csv"]
+    if missing := [str(p) for p in paths if not p.is_file()]:
+        raise ConfigError(f"--tables-only: {', '.join(missing)} missing; it rewrites the "
+                          "tables of a finished study from those files")
+    with open(paths[1], newline="") as f:
+        curves_by_run = {(r["scene"], r["start"], r["condition"], int(r["rep"])):
+                         [float(v) for k, v in r.items() if k[:1] == "c" and k[1:].isdigit()]
+                         for r in csv.DictReader(f)}
+    rows, curves = [], {}
+    with open(paths[0], newline="") as f:
+        for r in csv.DictReader(f):
+            row = {k: (v if k in ("scene", "start", "condition", "platform", "profile")
+                       else _value(v)) for k, v in r.items()}
+            row["coverage"] = curves_by_run[(row["scene"], row["start"], row["condition"],
+                                             row["rep"])]
+            rows.append(row)
+            curves.setdefault(row["condition"], []).append(row["coverage"])
     return rows, curves
 
 
@@ -228,34 +271,30 @@ def strata(rows: list[dict]) -> dict[str, list[Start]]:
 
 
 def signflip_p(deltas: list[float] | np.ndarray) -> float:
-    """Two-sided p-value of an exact paired sign-flip permutation test of mean(deltas) = 0.
+    """Two-sided p-value of an exact paired sign-flip permutation test of mean(deltas) = 0
+    (:func:`scipy.stats.permutation_test` on one sample, whose permutations flip signs).
 
     Under the null of no effect each paired delta is as likely positive as negative, so every
-    one of the 2^R sign assignments is equally likely; p is the share of them whose |mean| is
-    at least the observed one (the observed assignment included, so p >= 2^(1 − R)). Beyond
-    EXACT_SIGNFLIP_MAX_REPS deltas, 2^16 random assignments (fixed seed) stand in for all."""
+    one of the 2^R sign assignments is equally likely; p is the share of them whose mean is as
+    far from 0 as the observed one (the null is symmetric, so twice the smaller tail; the
+    observed assignment is among them, so p >= 2^(1 − R)). Beyond EXACT_SIGNFLIP_MAX_REPS
+    deltas, 2^16 random assignments (fixed seed) stand in for all."""
     d = np.asarray(deltas, dtype=np.float64)
     if len(d) == 0:
         return float("nan")
-    if len(d) <= EXACT_SIGNFLIP_MAX_REPS:
-        bits = (np.arange(2 ** len(d))[:, None] >> np.arange(len(d))) & 1
-    else:
-        bits = np.random.default_rng(0).integers(0, 2, size=(2 ** 16, len(d)))
-    stats = np.abs(((1 - 2 * bits) * d).mean(axis=1))
-    observed = abs(d.mean())
-    # A relative tolerance: sums in another order must not drop the observed assignment.
-    return float(np.mean(stats >= observed - 1e-12 * max(1.0, observed)))
+    exact = len(d) <= EXACT_SIGNFLIP_MAX_REPS
+    result = permutation_test((d,), np.mean, permutation_type="samples", vectorized=True,
+                              n_resamples=np.inf if exact else 2 ** 16,
+                              alternative="two-sided", rng=np.random.default_rng(0))
+    return float(result.pvalue)
 
 
 def holm(p: list[float] | np.ndarray) -> np.ndarray:
-    """Holm's step-down adjusted p-values, in the order given: the i-th smallest p is
-    multiplied by (m − i + 1), then made non-decreasing in that order and capped at 1."""
+    """Holm's step-down adjusted p-values, in the order given (statsmodels' multipletests):
+    the i-th smallest p is multiplied by (m − i + 1), then made non-decreasing in that order
+    and capped at 1."""
     p = np.asarray(p, dtype=np.float64)
-    order = np.argsort(p, kind="stable")
-    scaled = p[order] * (len(p) - np.arange(len(p)))
-    adjusted = np.empty_like(p)
-    adjusted[order] = np.minimum(np.maximum.accumulate(scaled), 1.0)
-    return adjusted
+    return multipletests(p, method="holm")[1] if len(p) else p
 
 
 def bh(p: list[float] | np.ndarray) -> np.ndarray:
@@ -587,6 +626,73 @@ def robustness(rows: list[dict], conditions: tuple[str, ...], resamples: int
     return "\n".join(lines + notes) + "\n", figures
 
 
+def crossfit_strata(rows: list[dict], condition: str, resamples: int) -> dict:
+    """Strata and the paper's selection chosen from some repetitions, effects measured on
+    another: for each repetition k, the starts are chosen by the learned runs of the other
+    repetitions, and their paired change (``condition`` − learned) is read at repetition k;
+    a group's effect is the mean over the folds of its starts' changes. Beside it, the
+    in-sample effect (chosen and measured on every repetition). Returns, per group, both
+    means and the held-out one's bootstrap interval over starts."""
+    deltas = paired_deltas(rows, condition, "final_coverage")
+    reps = sorted({r["rep"] for r in rows if r["condition"] == BASELINE})
+    out: dict = {}
+    if len(reps) < 2 or not deltas:
+        return out
+    choosers = {
+        "Low": lambda rs: strata(rs)["Low"],
+        "High": lambda rs: strata(rs)["High"],
+        "Selection (a)": lambda rs: paper_selection(rs, strata(rs)["All"])
+        ["lowest_learned"],
+    }
+    everything = per_start_effects(rows, condition, "final_coverage")
+    for name, pick in choosers.items():
+        held: dict[Start, list[float]] = {}
+        for k in reps:
+            chosen = pick([r for r in rows if r["rep"] != k])
+            for s in chosen:
+                if k in deltas.get(s, {}):
+                    held.setdefault(s, []).append(deltas[s][k])
+        per_start = {s: float(np.mean(v)) for s, v in held.items()}
+        text, fig = _pooled(per_start, sorted(per_start), True, 3, resamples)
+        chosen_all = pick(rows)
+        itext, fig["in_sample"] = _pooled(everything, chosen_all, True, 3, resamples)
+        fig["text"], fig["in_sample_text"] = text, itext
+        out[name] = fig
+    return out
+
+
+
+def crossfit(rows: list[dict], conditions: tuple[str, ...], resamples: int
+             ) -> tuple[str, dict]:
+    """Table 1's strata and the paper's selection (a) with the choice held out
+    (:func:`crossfit_strata`), beside the same groups chosen and measured on every repetition."""
+    lines = ["| Planner occupancy | Group | ΔC_T, chosen on every repetition | ΔC_T, chosen on "
+             "the other repetitions | starts |", "|---|---|---|---|---|"]
+    figures: dict = {}
+    for c in conditions:
+        if c == BASELINE:
+            continue
+        groups = crossfit_strata(rows, c, resamples)
+        if not groups:
+            continue
+        figures[c] = groups
+        for i, (g, fig) in enumerate(groups.items()):
+            lines.append(f"| {LABELS.get(c, c) if i == 0 else ''} | {g} | "
+                         f"{fig['in_sample_text']} | {fig['text']} | {fig['n']} |")
+    if not figures:
+        return "Not computed: it needs at least 2 learned repetitions.\n", {}
+    notes = ["", "The strata and the selection pick starts by their learned runs, and the "
+             "deltas subtract those same runs: a start picked for a bad learned run looks "
+             "better next time under any condition (regression to the mean). Held out: for "
+             "each repetition k, the starts are chosen by the learned runs of the other "
+             "repetitions and their paired change is read at repetition k; a start's change "
+             "is the mean over the folds that chose it, pooled over those starts (bootstrap "
+             "95% CI over starts; starts: how many were chosen in some fold). A group whose "
+             "effect shrinks from the first column to the second was, in part, selected. "
+             "`rovergate study --select-from DIR --seeds ...` tests the selection on new seeds."]
+    return "\n".join(lines + notes) + "\n", figures
+
+
 # ----------------------------------------------------------------------------- Table 2
 
 def _mean_std(x: np.ndarray) -> str:
@@ -770,11 +876,13 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
     unless given). A cell of a study passes its own directory, platform and the study's
     sessions, and the rows and curves it has read (``loaded``: :func:`load_rows`'s)."""
     rows, curves = loaded or load_rows(specs, out / "runs")
+    curves = {c: curves[c] for c in (*cfg.conditions, *curves) if c in curves}  # plots' order
     write_runs_csv(rows, out / "runs.csv")
     t1, f1 = table1(rows, cfg.conditions, cfg.bootstrap, cfg.steps)
     tf, ff = failure_modes(rows, cfg.conditions)
     td, fd = driving(rows, cfg.conditions)
     tr, fr = robustness(rows, cfg.conditions, cfg.bootstrap)
+    tx, fx = crossfit(rows, cfg.conditions, cfg.bootstrap)
     t2, f2 = table2(rows, cfg.bootstrap)
     if platform is None:
         platform = cfg.platform if isinstance(cfg.platform, str) else cfg.platform[0]
@@ -785,7 +893,7 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
                                    + header + t1 + "\n## Failure modes per condition\n\n"
                                    + tf + "\n## How the platform drove\n\n" + td
                                    + "\n## Without the runs that were stuck or collided\n\n"
-                                   + tr)
+                                   + tr + "\n## Strata chosen on other repetitions\n\n" + tx)
     (out / "table2.md").write_text("# Table 2: final coverage, learned against the "
                                    "observation-gated filter\n\n" + header + t2)
     plots = plot_curves(curves, out)
@@ -809,7 +917,8 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
         "run_wall_s_sum": float(sum(r["wall_s"] for r in rows)),
         "median_step_s": float(np.median([r["median_step_s"] for r in rows])) if rows else None,
         "median_stage_s": stages,
-        "table1": f1, "failure_modes": ff, "driving": fd, "robustness": fr, "table2": f2,
+        "table1": f1, "failure_modes": ff, "driving": fd, "robustness": fr, "crossfit": fx,
+        "table2": f2,
         "plots": plots,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
