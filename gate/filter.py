@@ -191,17 +191,25 @@ class RayGate(ObservationGate):
     plane seen at that angle changes depth by ``d tan(angle) / f`` from one pixel to the
     next). Depth discontinuities, whose mixed returns are least trustworthy, read as grazing.
 
+    With ``beyond_range_passes`` (the ``gated-ray-inf`` condition) a saturated return is
+    evidence after all: +Inf says nothing lay within the sensor's range along the pixel, so the
+    ray passed through every point nearer than the range, as :mod:`gate.views` reads it. A
+    dropped or grazing return still gives none. This is where the frustum gate's correct
+    removals are seen: a hallucinated surface floating against the sky.
+
         U_t = { x in O_hat_t : n_ray(x) >= K  and  min_{p in S_t} ||x - p|| > epsilon }
     """
 
     def __init__(self, k: int, epsilon_m: float, min_range_m: float, max_range_m: float,
-                 margin_m: float, grazing_max_deg: float) -> None:
+                 margin_m: float, grazing_max_deg: float,
+                 beyond_range_passes: bool = False) -> None:
         if k < 1 or epsilon_m <= 0 or margin_m < 0 or not 0 < grazing_max_deg <= 90:
             raise ValueError(f"the ray gate needs k >= 1, epsilon > 0, margin >= 0 and a "
                              f"grazing angle in (0, 90]; got k={k}, epsilon={epsilon_m}, "
                              f"margin={margin_m}, angle={grazing_max_deg}")
         super().__init__(k, epsilon_m, min_range_m, max_range_m)
         self.margin_m = margin_m
+        self.beyond_range_passes = beyond_range_passes
         self.tan_grazing = np.inf if grazing_max_deg >= 90 else np.tan(np.radians(grazing_max_deg))
         self._frames: list[tuple[np.ndarray, np.ndarray, CameraIntrinsics, np.ndarray]] = []
 
@@ -210,14 +218,18 @@ class RayGate(ObservationGate):
         return len(self._frames)
 
     def usable_depth(self, depth: np.ndarray, k: CameraIntrinsics) -> np.ndarray:
-        """The depth image with every unusable return (dropped, saturated, grazing) NaN."""
+        """The depth image with every unusable return (dropped, grazing, and saturated unless
+        ``beyond_range_passes``) NaN; a saturated return that passes stays +Inf."""
         d = np.asarray(depth, dtype=np.float32).copy()
+        beyond = np.isposinf(d)
         d[~np.isfinite(d)] = np.nan
         if np.isfinite(self.tan_grazing):
             with np.errstate(invalid="ignore"):
                 gv, gu = np.gradient(d.astype(np.float64))
                 tan = np.hypot(gu * k.fx, gv * k.fy) / d
             d[~(tan <= self.tan_grazing)] = np.nan  # NaN neighbours: no slope, no evidence
+        if self.beyond_range_passes:  # no surface there to graze: the ray went on
+            d[beyond] = np.inf
         return d
 
     def add_frame(self, T_map_camera: np.ndarray, k: CameraIntrinsics, depth: np.ndarray,

@@ -188,6 +188,9 @@ VARIANTS: dict[str, Variant] = {
     "gated": Variant(frustum, without_unsupported),
     "gated-ray": Variant(lambda cfg, eps, near, far: RayGate(
         cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg), without_unsupported),
+    "gated-ray-inf": Variant(lambda cfg, eps, near, far: RayGate(
+        cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg,
+        beyond_range_passes=True), without_unsupported),
     "gated-pose": Variant(lambda cfg, eps, near, far: PoseGate(
         cfg.k, eps, near, far, cfg.pose_sigmas), without_unsupported),
     "gated-split": Variant(lambda cfg, eps, near, far: SplitGate(

@@ -5,23 +5,25 @@ the ground commands share
 With S_t the observed surface, O_hat_t the thresholded prediction, FP_t / FN_t the oracle-tagged
 errors at delta = 0.03 d_scene, and O* the reference occupied samples:
 
-========== ==================================== ==========================================
-name        planner receives                      needs
-========== ==================================== ==========================================
-obs         S_t                                   --
-learned-fp  S_t + (O_hat_t - FP_t)                prediction, ground truth (oracle)
-learned     S_t + O_hat_t                         prediction
-learned+fn  S_t + O_hat_t + FN_t                  prediction, ground truth (oracle)
-truth       O*                                    ground truth (oracle)
-gated       S_t + (O_hat_t - U_t)                 prediction
-gated-ray   S_t + (O_hat_t - U_ray_t)             prediction, depth of every frame
-gated-pose  S_t + (O_hat_t - U_pose_t)            prediction, each pose's covariance
-gated-split gain: S_t + (O_hat_t - U_ray_t);       prediction, depth of every frame
-            collision: S_t + (O_hat_t - U_2view_t)
-========== ==================================== ==========================================
+============== ======================================= ======================================
+name           planner receives                        needs
+============== ======================================= ======================================
+obs            S_t                                     --
+learned-fp     S_t + (O_hat_t - FP_t)                  prediction, ground truth (oracle)
+learned        S_t + O_hat_t                           prediction
+learned+fn     S_t + O_hat_t + FN_t                    prediction, ground truth (oracle)
+truth          O*                                      ground truth (oracle)
+gated          S_t + (O_hat_t - U_t)                   prediction
+gated-ray      S_t + (O_hat_t - U_ray_t)               prediction, depth of every frame
+gated-ray-inf  S_t + (O_hat_t - U_inf_t)               prediction, depth of every frame
+gated-pose     S_t + (O_hat_t - U_pose_t)              prediction, each pose's covariance
+gated-split    gain: S_t + (O_hat_t - U_ray_t);        prediction, depth of every frame
+               collision: S_t + (O_hat_t - U_2view_t)
+============== ======================================= ======================================
 
 U_ray_t is U_t with ray-consistent exposure: a frame counts only when the ray through the
-point passed it by a margin on a usable return (gate/filter.py, RayGate); U_pose_t counts a
+point passed it by a margin on a usable return (gate/filter.py, RayGate); U_inf_t also counts
+a return beyond range (+Inf) as the ray's passage; U_pose_t counts a
 frame only if the point stays in its frustum under the pose's uncertainty, and widens support
 by it (PoseGate); U_2view_t needs rays from two camera positions apart (SplitGate).
 """
@@ -62,6 +64,8 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in [
               withholds=True),
     Condition("gated-ray", "learned through the gate with ray-consistent exposure", True,
               False, withholds=True),
+    Condition("gated-ray-inf", "the ray gate reading a return beyond range as the ray's "
+              "passage", True, False, withholds=True),
     Condition("gated-pose", "learned through the gate aware of the pose's uncertainty",
               True, False, withholds=True),
     Condition("gated-split", "learned with separate evidence for gain and collision", True,

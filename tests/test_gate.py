@@ -147,6 +147,7 @@ def test_every_condition_composes_as_equation_2(name):
         "truth": {0: 0, 1: 0, 2: 0, 3: 3},
         "gated": {0: 1, 1: 2, 2: 0, 3: 0},        # one frustum only: nothing suppressed yet
         "gated-ray": {0: 1, 1: 2, 2: 0, 3: 0},    # likewise
+        "gated-ray-inf": {0: 1, 1: 2, 2: 0, 3: 0},  # likewise
         "gated-pose": {0: 1, 1: 2, 2: 0, 3: 0},   # likewise
         "gated-split": {0: 1, 1: 2, 2: 0, 3: 0},  # likewise
     }[name]
@@ -162,6 +163,9 @@ def test_every_condition_with_a_prediction_has_its_variant_and_no_other_does():
     filters = {n: type(new_gate(n, np.zeros((1, 3), np.float32)).filter) for n in CONDITIONS}
     assert (filters["gated-ray"], filters["gated-pose"], filters["gated-split"]) == \
         (RayGate, PoseGate, SplitGate)
+    assert filters["gated-ray-inf"] is RayGate
+    assert new_gate("gated-ray-inf", np.zeros((1, 3), np.float32)).filter.beyond_range_passes
+    assert not new_gate("gated-ray", np.zeros((1, 3), np.float32)).filter.beyond_range_passes
     assert {filters[n] for n in CONDITIONS if not n.startswith("gated-")} == {ObservationGate}
 
 
@@ -257,10 +261,10 @@ def test_everything_the_planner_gets_lies_in_the_scored_region():
 # --- gated-ray: exposure only where the ray passed through the point ----------------------
 
 
-def make_ray_gate(k=1, eps=0.5, margin=0.3, grazing=75.0):
+def make_ray_gate(k=1, eps=0.5, margin=0.3, grazing=75.0, beyond_range_passes=False):
     from gate.filter import RayGate
     return RayGate(k=k, epsilon_m=eps, min_range_m=0.3, max_range_m=20.0, margin_m=margin,
-                   grazing_max_deg=grazing)
+                   grazing_max_deg=grazing, beyond_range_passes=beyond_range_passes)
 
 
 def wall(distance: float) -> np.ndarray:
@@ -288,6 +292,42 @@ def test_dropped_saturated_and_out_of_range_returns_are_no_evidence():
     g.add_frame(camera_looking_along_x(), K, wall(15.0))
     assert g.exposure_counts(pts).tolist() == [1, 1]
     assert g.exposure_counts(np.array([[25, 0, 1]], np.float32)).tolist() == [0]  # > range
+
+
+def test_a_return_beyond_range_is_the_rays_passage_for_gated_ray_inf():
+    """+Inf (nothing within range along the pixel) exposes every point nearer than the range;
+    a dropped return (NaN) still exposes nothing, nor does a point beyond the range."""
+    g = make_ray_gate(beyond_range_passes=True)
+    pts = np.array([[4.0, 0, 1], [10, 0, 1]], dtype=np.float32)
+    g.add_frame(camera_looking_along_x(), K, wall(np.nan))
+    assert g.exposure_counts(pts).tolist() == [0, 0]
+    g.add_frame(camera_looking_along_x(), K, wall(np.inf))
+    assert g.exposure_counts(pts).tolist() == [1, 1]
+    assert g.exposure_counts(np.array([[25, 0, 1]], np.float32)).tolist() == [0]  # > range
+    # Sky beside a rock: the sky's pixels pass, the rock's edge (a depth discontinuity) and
+    # the pixels behind the rock do not; the grazing test still reads the finite returns.
+    half = wall(3.0)
+    half[:, K.width // 2:] = np.inf
+    usable = g.usable_depth(half, K)
+    assert np.isposinf(usable[:, K.width // 2 + 1:]).all()
+    assert np.isnan(usable[:, K.width // 2 - 1]).all()  # beside +Inf: no slope, no evidence
+    assert (usable[:, :K.width // 2 - 1] == 3.0).all()
+    plain = make_ray_gate().usable_depth(half, K)
+    assert np.isnan(plain[:, K.width // 2:]).all()
+
+
+def test_a_hallucinated_surface_against_the_sky_is_withheld_only_by_gated_ray_inf():
+    """The frustum gate's correct removals: a prediction floating where every frame saw
+    nothing within range. The ray gate never has evidence; with +Inf as passage it does."""
+    floating = np.array([[6.0, 0, 1]], dtype=np.float32)
+    no_surface = np.zeros((0, 3), np.float32)
+    ray, inf_ray = make_ray_gate(k=2), make_ray_gate(k=2, beyond_range_passes=True)
+    for x in (0.0, 0.5):
+        for g in (ray, inf_ray):
+            g.add_frame(camera_looking_along_x(x), K, wall(np.inf))
+    assert ray.unsupported(floating, no_surface).tolist() == [False]
+    assert inf_ray.unsupported(floating, no_surface).tolist() == [True]
+    assert inf_ray.unsupported(floating, floating + [[0, 0.3, 0]]).tolist() == [False]
 
 
 def test_a_grazing_return_is_no_evidence():

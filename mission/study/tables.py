@@ -74,7 +74,8 @@ ALPHA = 0.05
 EXACT_SIGNFLIP_MAX_REPS = 16
 LABELS = {"obs": "Obs. only", "learned-fp": "Learned − FP†", "learned": "Learned (abs.)",
           "learned+fn": "Learned + FN†", "truth": "Ground truth†", "gated": "Obs.-gated filter",
-          "gated-ray": "Gate, ray-consistent", "gated-pose": "Gate, pose-aware",
+          "gated-ray": "Gate, ray-consistent",
+          "gated-ray-inf": "Gate, ray + beyond range", "gated-pose": "Gate, pose-aware",
           "gated-split": "Gate, split channels"}
 PLACEBO_LABEL = "Placebo (learned vs learned)"
 STAGES = ("render", "integrate", "gate", "traverse", "plan", "execute")
