@@ -29,10 +29,12 @@ def _dask(*args: str) -> subprocess.Popen:
 
 
 def _rows(path: Path) -> list[dict]:
-    """runs.csv without its timing columns (wall and stage seconds), by run."""
+    """runs.csv without its timing and cost columns (seconds, peak memory, compute energy),
+    by run."""
     with open(path) as f:
         rows = list(csv.DictReader(f))
-    keep = [k for k in rows[0] if not k.endswith("_s")]
+    keep = [k for k in rows[0] if not k.endswith("_s")
+            and k not in ("peak_rss_mb", "energy_compute_kj")]
     return sorted(({k: r[k] for k in keep} for r in rows),
                   key=lambda r: (r["condition"], r["rep"]))
 

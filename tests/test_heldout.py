@@ -156,3 +156,23 @@ def test_a_selection_without_new_seeds_is_refused_before_anything_runs(tmp_path:
                                 conditions=("learned",), select_from=str(src),
                                 out=tmp_path / "out"))
     assert not (tmp_path / "out").exists()
+
+
+def test_the_energy_model_and_the_cost_table():
+    from mission.scoring.energy import CORE_W, energy
+    from mission.study.tables import costs
+    rover = energy("rover", 37.0, 10.0)
+    assert rover["drive_j"] == pytest.approx(100_000.0)  # 100 W for 37 m at 3.7 cm/s
+    assert rover["compute_j"] == pytest.approx(10.0 * CORE_W) and CORE_W == 4.375
+    assert rover["total_j"] == pytest.approx(rover["drive_j"] + rover["compute_j"])
+    flyer = energy("flyer", 37.0, 10.0)
+    assert flyer["drive_j"] is None and flyer["total_j"] is None  # no published figure
+    rows = [{"condition": "learned", "median_step_s": s, "gate_s": 0.01, "plan_s": 0.05,
+             "cpu_s": 20.0 + i, "peak_rss_mb": 900.0 + 100 * i, "energy_drive_kj": 50.0,
+             "energy_compute_kj": 0.1} for i, s in enumerate((0.1, 0.2, 0.3))]
+    rows.append({"condition": "obs", "median_step_s": 0.1})  # a run from before the costs
+    text, fig = costs(rows, ("obs", "learned"))
+    assert fig["learned"]["step_ms"] == pytest.approx(200.0)
+    assert fig["learned"]["peak_rss_mb"] == 1000.0 and fig["learned"]["peak_rss_mb_max"] == 1100
+    assert fig["learned"]["cpu_s"] == 21.0 and fig["learned"]["drive_kj"] == 50.0
+    assert fig["obs"]["cpu_s"] is None and "| Obs. only | 1 | 100 | — |" in text

@@ -113,10 +113,15 @@ def study(out: Path, *extra: str, **kw) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 
+#: runs.csv's columns that measure what a run cost, which differ from one run to the next.
+COSTS = ("peak_rss_mb", "energy_compute_kj")
+
+
 def results(out: Path) -> list[dict]:
-    """runs.csv without the columns that time the run."""
+    """runs.csv without the columns that time the run or measure its costs."""
     with open(out / "runs.csv") as f:
-        return [{k: v for k, v in r.items() if not k.endswith("_s")} for r in csv.DictReader(f)]
+        return [{k: v for k, v in r.items() if not k.endswith("_s") and k not in COSTS}
+                for r in csv.DictReader(f)]
 
 
 @pytest.mark.e2e
@@ -140,6 +145,11 @@ def test_smoke_study_writes_every_output_and_is_the_same_in_any_worker(tmp_path:
     table = (out / "table1.md").read_text()
     assert "Learned (abs.)" in table and "Obs. only" in table and "[" in table
     assert "arch_field/a" in (out / "table2.md").read_text()
+    # Costs measured in the run itself: its CPU seconds, its process's peak, the energy model.
+    m = json.loads((out / "runs" / "arch_field-a-learned-r0" / "metrics.json").read_text())
+    assert m["cpu_s"] > 0 and 100 < m["peak_rss_mb"] < 20_000 and m["peak_rss_scope"] == "run"
+    assert m["energy_j"]["compute_j"] == pytest.approx(m["cpu_s"] * 280 / 64)
+    assert "## What the runs cost" in table
     # Same seeds, same runs, whichever worker ran them and in whichever order.
     assert results(tmp_path / "one") == rows
 
@@ -207,7 +217,7 @@ def test_a_terminated_study_stops_its_workers(tmp_path: Path, launch):
     (["--mission.in_process"], "--mission.in_process is set by the study for every run; "
                                "every run is in process; leave it out"),
     (["--mission.seed", "3"], "--mission.seed is set by the study for every run; repetition r "
-                              "runs with seed r; use --reps N for more seeds"),
+                              "runs with seed r; use --reps N for more seeds, or --seeds A..B"),
     (["--mission.out"], "--mission.out is set by the study for every run; use --out VALUE "
                         "(each run goes to OUT/runs/<id>)"),
 ])

@@ -5,8 +5,8 @@ Each run is one task: a worker runs the mission in a temporary directory of its 
 returns the run's files as bytes; the study writes them into ``OUT/runs/<id>`` as the local
 pool does (complete or not at all). So the workers need no filesystem shared with the study,
 and the same settings give the same runs, to the last digit, on a cluster or a local pool;
-only the timing columns of runs.csv (wall and stage seconds) differ, as they do between two
-local runs.
+only the timing and cost columns of runs.csv (seconds, peak memory, compute energy) differ, as
+they do between two local runs.
 
 What the workers need: rovergate installed (the same version, ``pip install -e
 '.[cluster]'``), one thread each (``dask worker --nthreads 1``: one mission at a time, and

@@ -68,7 +68,7 @@ def source_rows(select_from: str | Path) -> list[dict]:
 
 
 def _names(keys) -> list[str]:
-    return [T._name(k) for k in keys]
+    return [T.start_name(k) for k in keys]
 
 
 def _keys(names) -> list[T.Start]:
@@ -176,15 +176,15 @@ def heldout_table(rows: list[dict], decl: dict, conditions: tuple[str, ...], res
         fig_c: dict = {"starts": {}, "groups": {}}
         learned = T.per_start_effects(rows, T.BASELINE, "final_coverage")
         for i, k in enumerate(keys):
-            name = T._name(k)
+            name = T.start_name(k)
             by = "+".join(x for x, g in (("a", decl["lowest_learned"]),
                                           ("b", decl["largest_truth_gap"] or []),
                                           ("Low", decl["low"])) if name in g)
             mark = " *" if p_holm[i] < T.ALPHA else ""
-            lines.append(f"| {name} | {by} | {T._fmt(learned.get(k), False, 3)} | "
-                         f"{T._fmt(effect[k], True, 3)} | {len(deltas[k])} | "
-                         f"{T._fmt_p(p[i])} | {T._fmt_p(p_holm[i])}{mark} | "
-                         f"{T._fmt(in_sample.get(k), True, 3)} |")
+            lines.append(f"| {name} | {by} | {T.fmt(learned.get(k), False, 3)} | "
+                         f"{T.fmt(effect[k], True, 3)} | {len(deltas[k])} | "
+                         f"{T.fmt_p(p[i])} | {T.fmt_p(p_holm[i])}{mark} | "
+                         f"{T.fmt(in_sample.get(k), True, 3)} |")
             fig_c["starts"][name] = {"delta": effect[k], "values": list(deltas[k].values()),
                                      "p_signflip": p[i], "p_holm": float(p_holm[i]),
                                      "in_sample": in_sample.get(k)}
@@ -195,13 +195,13 @@ def heldout_table(rows: list[dict], decl: dict, conditions: tuple[str, ...], res
             if not names:
                 continue
             gk = [k for k in _keys(names) if k in effect]
-            text, fig = T._pooled(effect, gk, True, 3, resamples)
-            ptext, fig["placebo"] = T._pooled(placebo_new, gk, True, 3, resamples)
-            itext, fig["in_sample"] = T._pooled(in_sample, _keys(names), True, 3, resamples)
+            text, fig = T.pooled_over(effect, gk, True, 3, resamples)
+            ptext, fig["placebo"] = T.pooled_over(placebo_new, gk, True, 3, resamples)
+            itext, fig["in_sample"] = T.pooled_over(in_sample, _keys(names), True, 3, resamples)
             fig["p_over_starts"] = _pooled_p([effect[k] for k in gk])
             fig_c["groups"][glabel] = fig
             lines.append(f"| **{glabel}** | {len(gk)} | {text} | "
-                         f"{T._fmt_p(fig['p_over_starts'])} | {ptext} | {itext} |")
+                         f"{T.fmt_p(fig['p_over_starts'])} | {ptext} | {itext} |")
         lines.append("")
         figures["conditions"][c] = fig_c
     seeds = decl["seeds"]

@@ -105,9 +105,13 @@ def bootstrap_ci(values: np.ndarray, resamples: int, seed: int = 0) -> tuple[flo
     return float(ci.low), float(ci.high)
 
 
-def _mean(x) -> float | None:
+def mean_of(x) -> float | None:
     x = [v for v in x if v is not None]
     return float(np.mean(x)) if x else None
+
+
+def _kj(j: float | None) -> float | None:
+    return None if j is None else j / 1000
 
 
 def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[str, list]]:
@@ -132,14 +136,14 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
             "final_coverage": m["final_coverage"], "auc": m["auc"], "s70": step,
             "s70_reached": reached, "collisions": m["collisions"],
             "path_length_m": m["path_length_m"],
-            "predicted_per_step": _mean(m.get("predicted_points_per_step") or [None]),
-            "suppressed_per_step": (_mean(held) if get_condition(s.condition).withholds
+            "predicted_per_step": mean_of(m.get("predicted_points_per_step") or [None]),
+            "suppressed_per_step": (mean_of(held) if get_condition(s.condition).withholds
                                     else None),
             "suppressed_fp_share": m.get("suppressed_fp_share"),
             "suppression_recall": m.get("suppression_recall"),
-            "wrongly_withheld_per_step": (_mean(m.get("wrongly_withheld_per_step") or [None])
+            "wrongly_withheld_per_step": (mean_of(m.get("wrongly_withheld_per_step") or [None])
                                           if get_condition(s.condition).withholds else None),
-            "predicted_fp_per_step": _mean(m.get("predicted_fp_per_step") or [None]),
+            "predicted_fp_per_step": mean_of(m.get("predicted_fp_per_step") or [None]),
             "wall_s": m["wall_s"], "median_step_s": m["median_step_s"],
             **{f"{k}_s": stage.get(k) for k in STAGES},
             # Failure modes; runs written before these keys existed lack them (None, "—").
@@ -154,6 +158,10 @@ def load_rows(specs: list[RunSpec], runs_dir: Path) -> tuple[list[dict], dict[st
                       else None),
             "fp_gain_share": m.get("fp_gain_share"),
             "rejected_by_fp": m.get("rejected_by_fp"),
+            # Costs (mission/scoring/energy.py); runs written before them lack them.
+            "cpu_s": m.get("cpu_s"), "peak_rss_mb": m.get("peak_rss_mb"),
+            "energy_drive_kj": _kj((m.get("energy_j") or {}).get("drive_j")),
+            "energy_compute_kj": _kj((m.get("energy_j") or {}).get("compute_j")),
             "coverage": m["coverage"],
         })
         curves.setdefault(s.condition, []).append(m["coverage"])
@@ -239,7 +247,7 @@ def per_start_effects(rows: list[dict], condition: str, metric: str,
     (condition − ``reference``, learned); for the reference itself, the absolute mean of its
     runs."""
     if condition == reference:
-        means = {k: _mean(run.get(metric) for run in runs.values())
+        means = {k: mean_of(run.get(metric) for run in runs.values())
                  for k, runs in _runs(rows, reference, key).items()}
         return {k: m for k, m in means.items() if m is not None}
     return {k: float(np.mean(list(d.values())))
@@ -345,35 +353,35 @@ def paper_selection(rows: list[dict], starts: list[Start], size: int = SELECTION
 
 # ----------------------------------------------------------------------------- formatting
 
-def _name(k: Start) -> str:
+def start_name(k: Start) -> str:
     return f"{k[0]}/{k[1]}"
 
 
-def _fmt(v: float | None, signed: bool, digits: int) -> str:
+def fmt(v: float | None, signed: bool, digits: int) -> str:
     if v is None or not np.isfinite(v):
         return "—"
     return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
 
 
-def _fmt_p(p: float | None) -> str:
+def fmt_p(p: float | None) -> str:
     if p is None or not np.isfinite(p):
         return "—"
     return f"{p:.2f}" if p >= 0.01 else f"{p:.1e}"
 
 
-def _cell(values: list[float], signed: bool, digits: int, resamples: int) -> tuple[str, dict]:
+def pooled_cell(values: list[float], signed: bool, digits: int, resamples: int) -> tuple[str, dict]:
     """A pooled cell: the mean of ``values`` (one per start) and its bootstrap 95% CI."""
     if not values:
         return "—", {"mean": None, "ci95": None, "n": 0}
     m = float(np.mean(values))
     lo, hi = bootstrap_ci(np.array(values), resamples)
-    text = f"{_fmt(m, signed, digits)} [{_fmt(lo, signed, digits)}, {_fmt(hi, signed, digits)}]"
+    text = f"{fmt(m, signed, digits)} [{fmt(lo, signed, digits)}, {fmt(hi, signed, digits)}]"
     return text, {"mean": m, "ci95": [lo, hi], "n": len(values)}
 
 
-def _pooled(effects: dict[Start, float | None], keys: list[Start], signed: bool, digits: int,
+def pooled_over(effects: dict[Start, float | None], keys: list[Start], signed: bool, digits: int,
             resamples: int) -> tuple[str, dict]:
-    return _cell([effects[k] for k in keys if effects.get(k) is not None], signed, digits,
+    return pooled_cell([effects[k] for k in keys if effects.get(k) is not None], signed, digits,
                  resamples)
 
 
@@ -404,7 +412,7 @@ def table1(rows: list[dict], conditions: tuple[str, ...], resamples: int, steps:
         for g, keys in groups.items():
             cells, fig = [], {}
             for metric, _, digits in METRICS:
-                text, fig[metric] = _pooled(effects[metric], keys, c != BASELINE, digits,
+                text, fig[metric] = pooled_over(effects[metric], keys, c != BASELINE, digits,
                                             resamples)
                 cells.append(text)
             fig["s70_unreached"] = sum(1 for k in keys for run in runs.get(k, {}).values()
@@ -417,7 +425,7 @@ def table1(rows: list[dict], conditions: tuple[str, ...], resamples: int, steps:
     for g, keys in groups.items():
         cells, fig = [], {}
         for metric, _, digits in METRICS:
-            text, fig[metric] = _pooled(placebo[metric], keys, True, digits, resamples)
+            text, fig[metric] = pooled_over(placebo[metric], keys, True, digits, resamples)
             cells.append(text)
         figures.setdefault("placebo", {})[g] = fig
         name = PLACEBO_LABEL if g == "All" else ""
@@ -482,13 +490,13 @@ def failure_modes(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, d
                      if r.get("min_clearance_m") is not None
                      and math.isfinite(r["min_clearance_m"])]
         fig["min_clearance_m_median"] = float(np.median(clearance)) if clearance else None
-        fig["fp_gain_share_mean"] = _mean(v for r in runs if (v := r.get("fp_gain_share"))
+        fig["fp_gain_share_mean"] = mean_of(v for r in runs if (v := r.get("fp_gain_share"))
                                           is not None and math.isfinite(v))
         rejected = [r.get("rejected_by_fp") for r in runs]
         fig["rejected_by_fp"] = (int(sum(rejected)) if runs
                                  and all(v is not None for v in rejected) else None)
-        cells += [_fmt(fig["min_clearance_m_median"], False, 2),
-                  _fmt(fig["fp_gain_share_mean"], False, 2),
+        cells += [fmt(fig["min_clearance_m_median"], False, 2),
+                  fmt(fig["fp_gain_share_mean"], False, 2),
                   "—" if fig["rejected_by_fp"] is None else str(fig["rejected_by_fp"])]
         figures[c] = fig
         lines.append(f"| {LABELS.get(c, c)} | {len(runs)} | " + " | ".join(cells) + " |")
@@ -556,10 +564,10 @@ def driving(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
             f"{fig['stuck_steps']} "
             f"({100 * (fig['stuck_share'] or 0):.1f}%) | {fig['runs_stuck_over_max']} | "
             f"{fig['least_driven_m']:.1f} | {fig['runs_under_min_driven']} | "
-            + _fmt(fig["closest_approach_m"], False, 2) + " | "
+            + fmt(fig["closest_approach_m"], False, 2) + " | "
             + " / ".join(str(refused[k]) for k in HAZARD_KINDS)
             + f" | {fig['backouts']} | {fig['stays']} | "
-            + _fmt(fig["traverse_ms_median"], False, 1) + " |")
+            + fmt(fig["traverse_ms_median"], False, 1) + " |")
     notes = ["", "Totals over every run of the condition. Stuck: under 0.5 m of net progress "
              "over the last 10 steps. Closest approach: the least clearance between the body "
              "and the true scene over every executed motion of every run (negative: a "
@@ -570,6 +578,48 @@ def driving(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
              "(mission/scoring/evaluation.py): a planner fault touched what its map held, unseen "
              "geometry what it did not. The layer's time is the planner's "
              "`traverse` stage: the frames into the height map and the step's masks."]
+    return "\n".join(lines + notes) + "\n", figures
+
+
+def costs(rows: list[dict], conditions: tuple[str, ...]) -> tuple[str, dict]:
+    """What the runs cost, per condition, measured in the runs themselves: the median step and
+    the median of each run's median gate and planner stage, the CPU seconds and peak memory of a
+    run (median and largest), and the energy estimate (mean; mission/scoring/energy.py). "—"
+    where the runs do not record it."""
+    lines = ["| Planner occupancy | runs | step (ms) | gate (ms) | plan (ms) | CPU per run (s) "
+             "| peak memory (MB), median / max | drive energy (kJ) | compute energy (kJ) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    figures: dict = {}
+
+    def med(runs, key, scale=1.0):
+        v = [r[key] for r in runs if r.get(key) is not None]
+        return scale * float(np.median(v)) if v else None
+
+    for c in conditions:
+        runs = [r for r in rows if r["condition"] == c]
+        if not runs:
+            continue
+        peak = [r["peak_rss_mb"] for r in runs if r.get("peak_rss_mb") is not None]
+        fig = {"runs": len(runs), "step_ms": med(runs, "median_step_s", 1000),
+               "gate_ms": med(runs, "gate_s", 1000), "plan_ms": med(runs, "plan_s", 1000),
+               "cpu_s": med(runs, "cpu_s"),
+               "peak_rss_mb": float(np.median(peak)) if peak else None,
+               "peak_rss_mb_max": max(peak) if peak else None,
+               "drive_kj": mean_of(r.get("energy_drive_kj") for r in runs),
+               "compute_kj": mean_of(r.get("energy_compute_kj") for r in runs)}
+        figures[c] = fig
+        lines.append(f"| {LABELS.get(c, c)} | {len(runs)} | " + " | ".join(
+            fmt(fig[k], False, d) for k, d in (("step_ms", 0), ("gate_ms", 1), ("plan_ms", 0),
+                                                ("cpu_s", 1)))
+            + f" | {fmt(fig['peak_rss_mb'], False, 0)} / {fmt(fig['peak_rss_mb_max'], False, 0)}"
+            + f" | {fmt(fig['drive_kj'], False, 0)} | {fmt(fig['compute_kj'], False, 2)} |")
+    notes = ["", "Measured in the study's own runs, every module in one process: step, gate "
+             "and plan are the medians over runs of each run's median per step; CPU: user and "
+             "system seconds of the whole run; peak memory: the run's process (Linux resets it "
+             "per run). Energy (mission/scoring/energy.py): drive = metres driven x 2.7 kJ/m "
+             "on the rover (a Mars Exploration Rover's 100 W at 3.7 cm/s; none for the flyer); "
+             "compute = CPU seconds x 4.4 W (a server core). A model, not a measurement: "
+             "docs/study.md gives its sources and limits."]
     return "\n".join(lines + notes) + "\n", figures
 
 
@@ -598,16 +648,16 @@ def robustness(rows: list[dict], conditions: tuple[str, ...], resamples: int
         kept = per_start_effects(clean, c, "final_coverage")
         pairs = sum(len(d) for d in paired_deltas(rows, c, "final_coverage").values())
         pairs_kept = sum(len(d) for d in paired_deltas(clean, c, "final_coverage").values())
-        t_full, f_full = _pooled(full, sorted(full), True, 3, resamples)
-        t_kept, f_kept = _pooled(kept, sorted(kept), True, 3, resamples)
+        t_full, f_full = pooled_over(full, sorted(full), True, 3, resamples)
+        t_kept, f_kept = pooled_over(kept, sorted(kept), True, 3, resamples)
         figures[c] = {"every_pair": f_full, "clean_pairs": f_kept, "pairs": pairs,
                       "pairs_kept": pairs_kept}
         lines.append(f"| {LABELS.get(c, c)} | {t_full} | {t_kept} | {len(kept)} of "
                      f"{len(full)} | {pairs_kept} of {pairs} |")
     full_p = placebo_effects(rows, "final_coverage")
     kept_p = placebo_effects(clean, "final_coverage")
-    t_full, f_full = _pooled(full_p, sorted(full_p), True, 3, resamples)
-    t_kept, f_kept = _pooled(kept_p, sorted(kept_p), True, 3, resamples)
+    t_full, f_full = pooled_over(full_p, sorted(full_p), True, 3, resamples)
+    t_kept, f_kept = pooled_over(kept_p, sorted(kept_p), True, 3, resamples)
     n_clean = sum(1 for r in clean if r["condition"] == BASELINE)
     n_all = sum(1 for r in rows if r["condition"] == BASELINE)
     starts_kept = sum(1 for v in kept_p.values() if v is not None)
@@ -654,9 +704,9 @@ def crossfit_strata(rows: list[dict], condition: str, resamples: int) -> dict:
                 if k in deltas.get(s, {}):
                     held.setdefault(s, []).append(deltas[s][k])
         per_start = {s: float(np.mean(v)) for s, v in held.items()}
-        text, fig = _pooled(per_start, sorted(per_start), True, 3, resamples)
+        text, fig = pooled_over(per_start, sorted(per_start), True, 3, resamples)
         chosen_all = pick(rows)
-        itext, fig["in_sample"] = _pooled(everything, chosen_all, True, 3, resamples)
+        itext, fig["in_sample"] = pooled_over(everything, chosen_all, True, 3, resamples)
         fig["text"], fig["in_sample_text"] = text, itext
         out[name] = fig
     return out
@@ -724,16 +774,16 @@ def table2(rows: list[dict], resamples: int) -> tuple[str, dict]:
         reps = list(deltas[k])
         lc = np.array([learned[k][r]["final_coverage"] for r in reps])
         gc = np.array([gated[k][r]["final_coverage"] for r in reps])
-        held = _mean(gated[k][r]["suppressed_per_step"] for r in reps)
-        share = _mean(gated[k][r]["suppressed_fp_share"] for r in reps)
+        held = mean_of(gated[k][r]["suppressed_per_step"] for r in reps)
+        share = mean_of(gated[k][r]["suppressed_fp_share"] for r in reps)
         same = identical.get(k)
         mark = " *" if p_holm[i] < ALPHA else ""
-        lines.append(f"| {_name(k)} | {_mean_std(lc)} | {_mean_std(gc)} | "
-                     f"{_fmt(effect[k], True, 3)} | {len(reps)} | {_fmt_p(p_raw[i])} | "
-                     f"{_fmt_p(p_holm[i])}{mark} | "
+        lines.append(f"| {start_name(k)} | {_mean_std(lc)} | {_mean_std(gc)} | "
+                     f"{fmt(effect[k], True, 3)} | {len(reps)} | {fmt_p(p_raw[i])} | "
+                     f"{fmt_p(p_holm[i])}{mark} | "
                      f"{'—' if same is None else f'{same[0]}/{same[1]}'} | "
-                     f"{_fmt(held, False, 0)} | {_fmt(share, False, 2)} |")
-        figures["starts"][_name(k)] = {
+                     f"{fmt(held, False, 0)} | {fmt(share, False, 2)} |")
+        figures["starts"][start_name(k)] = {
             "learned": lc.tolist(), "gated": gc.tolist(),
             "delta": {"mean": effect[k], "values": [deltas[k][r] for r in reps],
                       "n": len(reps)},
@@ -764,11 +814,11 @@ def table2(rows: list[dict], resamples: int) -> tuple[str, dict]:
             figures.setdefault(where[0], {})[where[-1]] = None
             table.append(f"| **{label}** | 0 | — (no truth runs) | — |")
             continue
-        text, fig = _pooled(effect, keys, True, 3, resamples)
-        ptext, fig["placebo"] = _pooled(placebo, keys, True, 3, resamples)
+        text, fig = pooled_over(effect, keys, True, 3, resamples)
+        ptext, fig["placebo"] = pooled_over(placebo, keys, True, 3, resamples)
         if fig["placebo"]["n"] not in (0, len(keys)):
             ptext += f" (n={fig['placebo']['n']})"
-        fig["starts"] = [_name(k) for k in keys]
+        fig["starts"] = [start_name(k) for k in keys]
         if len(where) == 1:
             figures[where[0]] = fig
         else:
@@ -807,7 +857,7 @@ def table2(rows: list[dict], resamples: int) -> tuple[str, dict]:
         f"**Sign test over starts** (mean ΔC_T per start): {tests['improve']} improve, "
         f"{tests['worsen']} worsen, {tests['tie']} tie; with no effect "
         f"{tests['expected_improve']:g} of the {tests['improve'] + tests['worsen']} untied "
-        f"would be expected to improve; two-sided binomial p = {_fmt_p(tests['p'])} "
+        f"would be expected to improve; two-sided binomial p = {fmt_p(tests['p'])} "
         "(ties dropped).",
         "",
         "**Bit-identical gated runs**: " + (
@@ -884,6 +934,7 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
     td, fd = driving(rows, cfg.conditions)
     tr, fr = robustness(rows, cfg.conditions, cfg.bootstrap)
     tx, fx = crossfit(rows, cfg.conditions, cfg.bootstrap)
+    tc, fc = costs(rows, cfg.conditions)
     t2, f2 = table2(rows, cfg.bootstrap)
     if platform is None:
         platform = cfg.platform if isinstance(cfg.platform, str) else cfg.platform[0]
@@ -894,7 +945,8 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
                                    + header + t1 + "\n## Failure modes per condition\n\n"
                                    + tf + "\n## How the platform drove\n\n" + td
                                    + "\n## Without the runs that were stuck or collided\n\n"
-                                   + tr + "\n## Strata chosen on other repetitions\n\n" + tx)
+                                   + tr + "\n## Strata chosen on other repetitions\n\n" + tx
+                                   + "\n## What the runs cost\n\n" + tc)
     (out / "table2.md").write_text("# Table 2: final coverage, learned against the "
                                    "observation-gated filter\n\n" + header + t2)
     plots = plot_curves(curves, out)
@@ -919,7 +971,7 @@ def write_tables(cfg: StudyConfig, specs: list[RunSpec], out: Path,
         "median_step_s": float(np.median([r["median_step_s"] for r in rows])) if rows else None,
         "median_stage_s": stages,
         "table1": f1, "failure_modes": ff, "driving": fd, "robustness": fr, "crossfit": fx,
-        "table2": f2,
+        "costs": fc, "table2": f2,
         "plots": plots,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")

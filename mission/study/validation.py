@@ -34,12 +34,12 @@ from mission.study.tables import (  # noqa: E402
     BASELINE,
     FILTER,
     LABELS,
-    _cell,
-    _fmt,
-    _mean,
+    fmt,
     load_rows,
+    mean_of,
     per_start_effects,
     placebo_effects,
+    pooled_cell,
     start_of,
     write_runs_csv,
     write_tables,
@@ -79,7 +79,7 @@ def suppression(rows: list[dict]) -> dict:
     return {"withheld": withheld, "withheld_fp": fp, "predicted_fp": predicted_fp,
             "precision": fp / withheld if withheld else None,
             "recall": recalled / predicted_fp if predicted_fp else None,
-            "wrongly_withheld_per_step": _mean(r.get("wrongly_withheld_per_step")
+            "wrongly_withheld_per_step": mean_of(r.get("wrongly_withheld_per_step")
                                                for r in rows)}
 
 
@@ -98,7 +98,7 @@ def _failures(rows: list[dict]) -> dict:
             "stuck_steps": total("stuck_steps"),
             "stuck_runs": sum(1 for r in rows if (r.get("stuck_steps") or 0) > 0),
             "min_clearance_m_median": float(np.median(clearance)) if clearance else None,
-            "fp_gain_share_mean": _mean(r.get("fp_gain_share") for r in rows
+            "fp_gain_share_mean": mean_of(r.get("fp_gain_share") for r in rows
                                         if r.get("fp_gain_share") is not None
                                         and math.isfinite(r["fp_gain_share"])),
             "gate_s_median": float(np.median(gate)) if gate else None,
@@ -115,7 +115,7 @@ def _reps(rows: list[dict]) -> dict:
 
 
 def _s(v, digits=3, signed=False) -> str:
-    return _fmt(v, signed, digits) if v is not None else "—"
+    return fmt(v, signed, digits) if v is not None else "—"
 
 
 def cell_table(rows: list[dict], conditions: tuple[str, ...], resamples: int,
@@ -131,12 +131,12 @@ def cell_table(rows: list[dict], conditions: tuple[str, ...], resamples: int,
         effect = per_start_effects(rows, c, "final_coverage", key=key)
         vs_gate = "—"
         if c == BASELINE:  # absolute
-            text, fig["final_coverage"] = _cell(list(effect.values()), False, 3, resamples)
+            text, fig["final_coverage"] = pooled_cell(list(effect.values()), False, 3, resamples)
         else:
-            text, fig["delta_c_t"] = _cell(list(effect.values()), True, 3, resamples)
+            text, fig["delta_c_t"] = pooled_cell(list(effect.values()), True, 3, resamples)
             if c != FILTER and get_condition(c).withholds:
                 g = per_start_effects(rows, c, "final_coverage", reference=FILTER, key=key)
-                vs_gate, fig["delta_vs_gated"] = _cell(list(g.values()), True, 3, resamples)
+                vs_gate, fig["delta_vs_gated"] = pooled_cell(list(g.values()), True, 3, resamples)
         sup = suppression(runs) if get_condition(c).withholds else {}
         fail = _failures(runs)
         fig.update(sup)
@@ -152,7 +152,7 @@ def cell_table(rows: list[dict], conditions: tuple[str, ...], resamples: int,
             f"{_s(fail['min_clearance_m_median'], 2)} | "
             f"{_s(fail['gate_s_median'], 4)} ({_s(fail['gate_share_of_step'], 3)}) |")
     p = placebo_effects(rows, "final_coverage", key)
-    text, figures["placebo"] = _cell([v for v in p.values() if v is not None], True, 3,
+    text, figures["placebo"] = pooled_cell([v for v in p.values() if v is not None], True, 3,
                                      resamples)
     lines.append(f"| Placebo (learned vs learned) | — | {text} | — | | | | | | | | |")
     return lines, figures
