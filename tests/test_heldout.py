@@ -176,3 +176,13 @@ def test_the_energy_model_and_the_cost_table():
     assert fig["learned"]["peak_rss_mb"] == 1000.0 and fig["learned"]["peak_rss_mb_max"] == 1100
     assert fig["learned"]["cpu_s"] == 21.0 and fig["learned"]["drive_kj"] == 50.0
     assert fig["obs"]["cpu_s"] is None and "| Obs. only | 1 | 100 | — |" in text
+
+
+def test_the_sweep_chooses_the_largest_recall_at_the_precision_or_says_it_missed():
+    from mission.study.sweep import choose
+    figs = {"k1-eps0.03": {"precision": 0.95, "recall": 0.2},
+            "k1-eps0.06": {"precision": 0.91, "recall": 0.4},
+            "k2-eps0.03": {"precision": 0.5, "recall": 0.9},
+            "k3-eps0.03": {"precision": None, "recall": 0.0}}  # withheld nothing
+    assert choose(figs, 0.9) == ("k1-eps0.06", True)
+    assert choose(figs, 0.99) == ("k1-eps0.03", False)  # none reaches it: the most precise
