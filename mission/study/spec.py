@@ -141,6 +141,21 @@ PRESETS: dict[str, dict] = {
     "validation": {"scenes": SUITE, "starts": ("a",), "conditions": VALIDATION_CONDITIONS,
                    "platform": ("flyer", "rover"), "profiles": tuple(SENSING_PROFILES),
                    "reps": 2, "filter_reps": 2, "steps": 100},
+    # Issue 28's validation, in two studies that fit its 4 hours of compute with the held-out
+    # test and the gate sweep (docs/validation.md says what they leave out). The flyer: every
+    # profile, start a, seeds of its own (3 and 4: the default study ran 0-2), the new gate and
+    # truth; 240 runs, about half an hour.
+    "validation-flyer": {"scenes": SUITE, "starts": ("a",),
+                         "conditions": ("learned", "gated", "gated-ray-inf", "gated-pose",
+                                        "truth"),
+                         "platform": ("flyer",), "profiles": tuple(SENSING_PROFILES),
+                         "seeds": "3..4", "steps": 100},
+    # The rover: every start, five seeds, truth as each cell's ceiling; the two extreme
+    # profiles and the suite's first three scenes; 600 runs, about two and a half hours.
+    "validation-rover": {"scenes": SUITE[:3], "starts": START_NAMES,
+                         "conditions": ("learned", "gated", "gated-ray-inf", "truth"),
+                         "platform": ("rover",), "profiles": ("nominal", "drift+degraded"),
+                         "seeds": "0..4", "steps": 100},
 }
 
 #: Sections and flags that only the process set reads: every study run is in one process, so
