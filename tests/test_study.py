@@ -441,3 +441,21 @@ def test_a_study_saved_before_a_mission_setting_existed_still_resumes(tmp_path: 
     other = json.loads(json.dumps(now))
     other["mission"]["gate"]["k"] = 5
     assert _normalised(other) != now
+
+
+def test_issue_28s_validation_presets_run_their_own_seeds_and_truth(tmp_path: Path):
+    import tyro
+
+    from mission.study.spec import check_study, preset_args, run_specs
+
+    def specs(name):
+        cfg = check_study(tyro.cli(StudyConfig, args=preset_args(
+            ["--preset", name, "--out", str(tmp_path)])))
+        return run_specs(cfg)
+    flyer, rover = specs("validation-flyer"), specs("validation-rover")
+    assert len(flyer) == 6 * 1 * 5 * 4 * 2 and len(rover) == 3 * 5 * 4 * 2 * 5
+    # The flyer's nominal cell has seeds of its own: the default study ran 0, 1 and 2.
+    assert {s.rep for s in flyer} == {3, 4}
+    assert {s.rep for s in rover} == set(range(5)) and {s.start for s in rover} == set("abcde")
+    for runs in (flyer, rover):
+        assert {"truth", "gated-ray-inf", "learned", "gated"} <= {s.condition for s in runs}
