@@ -177,6 +177,19 @@ class ObservationGate:
         return out
 
 
+def _all_neighbours(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixel's 8 neighbours are all set (outside the image is unknown: a
+    pixel on the image's edge never is)."""
+    padded = np.pad(mask, 1, constant_values=False)
+    h, w = mask.shape
+    out = np.ones_like(mask)
+    for dv in (0, 1, 2):
+        for du in (0, 1, 2):
+            if (dv, du) != (1, 1):
+                out &= padded[dv:dv + h, du:du + w]
+    return out
+
+
 class RayGate(ObservationGate):
     """Equation 4 with ray-consistent exposure (the ``gated-ray`` condition).
 
@@ -193,8 +206,10 @@ class RayGate(ObservationGate):
 
     With ``beyond_range_passes`` (the ``gated-ray-inf`` condition) a saturated return is
     evidence after all: +Inf says nothing lay within the sensor's range along the pixel, so the
-    ray passed through every point nearer than the range, as :mod:`gate.views` reads it. A
-    dropped or grazing return still gives none. This is where the frustum gate's correct
+    ray passed through every point nearer than the range, as :mod:`gate.views` reads it, where
+    its 8 neighbours saw nothing within range either (beside a silhouette, the nearest pixel
+    of a point on the surface's edge may miss it). A dropped or grazing return still gives
+    none. This is where the frustum gate's correct
     removals are seen: a hallucinated surface floating against the sky.
 
         U_t = { x in O_hat_t : n_ray(x) >= K  and  min_{p in S_t} ||x - p|| > epsilon }
@@ -229,7 +244,9 @@ class RayGate(ObservationGate):
                 tan = np.hypot(gu * k.fx, gv * k.fy) / d
             d[~(tan <= self.tan_grazing)] = np.nan  # NaN neighbours: no slope, no evidence
         if self.beyond_range_passes:  # no surface there to graze: the ray went on
-            d[beyond] = np.inf
+            # Only where every neighbour saw nothing either: a pixel on a silhouette may hold
+            # a surface that the nearest-pixel projection of a point beside it misses.
+            d[beyond & _all_neighbours(beyond)] = np.inf
         return d
 
     def add_frame(self, T_map_camera: np.ndarray, k: CameraIntrinsics, depth: np.ndarray,

@@ -7,6 +7,7 @@ import pytest
 
 from gate.filter import ObservationGate
 from gate.gate import Gate, oracle_tags
+from gate.views import pixels
 from rovergate.conditions import CONDITIONS
 from rovergate.config import GateConfig, SensorConfig
 from rovergate.geometry import R_BODY_OPTICAL
@@ -304,12 +305,22 @@ def test_a_return_beyond_range_is_the_rays_passage_for_gated_ray_inf():
     g.add_frame(camera_looking_along_x(), K, wall(np.inf))
     assert g.exposure_counts(pts).tolist() == [1, 1]
     assert g.exposure_counts(np.array([[25, 0, 1]], np.float32)).tolist() == [0]  # > range
+    # A point whose pixel is +Inf but beside a surface's silhouette: no evidence.
+    edge = wall(np.inf)
+    _, v, u, _ = pixels(pts[:1], *g._frames[-1][:3], 0.3, 20.0)
+    edge[v[0], u[0] + 1] = 3.0
+    h = make_ray_gate(beyond_range_passes=True)
+    h.add_frame(camera_looking_along_x(), K, edge)
+    assert h.exposure_counts(pts[:1]).tolist() == [0]
     # Sky beside a rock: the sky's pixels pass, the rock's edge (a depth discontinuity) and
     # the pixels behind the rock do not; the grazing test still reads the finite returns.
     half = wall(3.0)
     half[:, K.width // 2:] = np.inf
     usable = g.usable_depth(half, K)
-    assert np.isposinf(usable[:, K.width // 2 + 1:]).all()
+    assert np.isposinf(usable[1:-1, K.width // 2 + 1:-1]).all()
+    # Beside the rock's silhouette, and on the image's edge, +Inf is no evidence either.
+    assert np.isnan(usable[:, K.width // 2]).all() and np.isnan(usable[:, -1]).all()
+    assert np.isnan(usable[0, K.width // 2:]).all() and np.isnan(usable[-1, K.width // 2:]).all()
     assert np.isnan(usable[:, K.width // 2 - 1]).all()  # beside +Inf: no slope, no evidence
     assert (usable[:, :K.width // 2 - 1] == 3.0).all()
     plain = make_ray_gate().usable_depth(half, K)
