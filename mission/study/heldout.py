@@ -90,31 +90,23 @@ def choose(select_from: str | Path) -> dict:
             "starts": _names(union)}
 
 
-def selected_starts(select_from: str | Path) -> list[T.Start]:
-    """The (scene, start) pairs a held-out study runs: the union of the two selections."""
-    return _keys(choose(select_from)["starts"])
-
-
 def check(cfg: StudyConfig) -> list[T.Start]:
-    """A held-out study's checks before any run (seeds the source never ran, a selection
-    inside --scenes and --starts); returns the selected starts."""
-    check_seeds(cfg.select_from, parse_seeds(cfg.seeds))
-    chosen = selected_starts(cfg.select_from)
+    """A held-out study's checks before any run: seeds the source never ran, a selection
+    inside --scenes and --starts. Returns the selected (scene, start) pairs: the union of the
+    two selections."""
+    decl = choose(cfg.select_from)
+    used = set(decl["source_seeds"])
+    if overlap := sorted(used & set(parse_seeds(cfg.seeds))):
+        raise ConfigError(f"--seeds: {', '.join(map(str, overlap))} were run by the study at "
+                          f"--select-from (its seeds are {', '.join(map(str, sorted(used)))}); "
+                          "a held-out test needs seeds it never ran, e.g. --seeds "
+                          f"{max(used) + 1}..{max(used) + 10}")
+    chosen = _keys(decl["starts"])
     if missing := [f"{a}/{b}" for a, b in chosen
                    if a not in cfg.scenes or b not in cfg.starts]:
         raise ConfigError(f"--select-from chose {', '.join(missing)}, outside --scenes and "
                           "--starts; leave those flags at their defaults")
     return chosen
-
-
-def check_seeds(select_from: str | Path, seeds: tuple[int, ...]) -> None:
-    """A held-out test runs only seeds the source never ran."""
-    used = set(choose(select_from)["source_seeds"])
-    if overlap := sorted(used & set(seeds)):
-        raise ConfigError(f"--seeds: {', '.join(map(str, overlap))} were run by the study at "
-                          f"--select-from (its seeds are {', '.join(map(str, sorted(used)))}); "
-                          "a held-out test needs seeds it never ran, e.g. --seeds "
-                          f"{max(used) + 1}..{max(used) + 10}")
 
 
 def declare(select_from: str | Path, out: Path, seeds: tuple[int, ...]) -> dict:

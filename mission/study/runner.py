@@ -131,7 +131,10 @@ def _tables_only(cfg: StudyConfig, out: Path, specs: list, sessions: list) -> in
     loaded = rows_from_csv(out)
     summary = write_tables(cfg, specs, out, sessions=sessions, loaded=loaded)
     if cfg.select_from:
-        from mission.study.heldout import declare, parse_seeds, write_heldout
+        from mission.study.heldout import SELECTION_FILE, declare, parse_seeds, write_heldout
+        if not (out / SELECTION_FILE).exists():  # a selection is declared before runs, only
+            raise ConfigError(f"--tables-only: {out / SELECTION_FILE} is missing; a held-out "
+                              "study's selection is declared when it starts, not afterwards")
         decl = declare(cfg.select_from, out, parse_seeds(cfg.seeds))
         write_heldout(cfg, specs, out, decl, summary, rows=loaded[0])
     log.info("tables of %d runs rewritten in %s from runs.csv and coverage_curves.csv",

@@ -325,7 +325,7 @@ def parse_seeds(text: str) -> tuple[int, ...]:
 
 def run_specs(cfg: StudyConfig, only: list[tuple[str, str]] | None = None) -> list[RunSpec]:
     """Every run of the study, in a fixed order; with ``only``, of those (scene, start)
-    pairs alone (a held-out test's selection: :func:`mission.study.heldout.selected_starts`)."""
+    pairs alone (a held-out test's selection: :func:`mission.study.heldout.check`)."""
     seeds = parse_seeds(cfg.seeds) if cfg.seeds else None
     specs = []
     for platform, profile in cells(cfg) or [("", "")]:
