@@ -188,9 +188,11 @@ VARIANTS: dict[str, Variant] = {
     "gated": Variant(frustum, without_unsupported),
     "gated-ray": Variant(lambda cfg, eps, near, far: RayGate(
         cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg), without_unsupported),
+    # Its own K and epsilon (GateConfig.ray_inf_*): eps is the frustum gate's, in metres.
     "gated-ray-inf": Variant(lambda cfg, eps, near, far: RayGate(
-        cfg.k, eps, near, far, cfg.ray_margin_m, cfg.ray_grazing_max_deg,
-        beyond_range_passes=True), without_unsupported),
+        cfg.ray_inf_k, eps * cfg.ray_inf_epsilon_frac / cfg.epsilon_frac, near, far,
+        cfg.ray_margin_m, cfg.ray_grazing_max_deg, beyond_range_passes=True),
+        without_unsupported),
     "gated-pose": Variant(lambda cfg, eps, near, far: PoseGate(
         cfg.k, eps, near, far, cfg.pose_sigmas), without_unsupported),
     "gated-split": Variant(lambda cfg, eps, near, far: SplitGate(

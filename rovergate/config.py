@@ -283,6 +283,14 @@ class GateConfig:
     """gated-ray: a return from a surface seen at an incidence angle above this (estimated
     from the depth image's gradient) gives no evidence; 90 turns the test off."""
 
+    ray_inf_k: int = 2
+    """gated-ray-inf: its evidence count K (frames whose rays passed through a prediction, a
+    return beyond range included). Chosen by the sweep (docs/results/gate-sweep/sweep.md): the
+    largest recall at suppression precision 0.9 on the flyer's starts b and c."""
+    ray_inf_epsilon_frac: float = 0.06
+    """gated-ray-inf: its support radius as a fraction of d_scene (the sweep's choice, as
+    ray_inf_k; the frustum gate's is epsilon-frac, 0.03)."""
+
     split_baseline_m: float = 0.5
     """gated-split: the collision channel withholds a prediction only when rays from two
     camera positions at least this far apart passed through it (gate/filter.py)."""

@@ -167,6 +167,14 @@ def test_every_condition_with_a_prediction_has_its_variant_and_no_other_does():
     assert filters["gated-ray-inf"] is RayGate
     assert new_gate("gated-ray-inf", np.zeros((1, 3), np.float32)).filter.beyond_range_passes
     assert not new_gate("gated-ray", np.zeros((1, 3), np.float32)).filter.beyond_range_passes
+    # gated-ray-inf has its own K and epsilon (the sweep's choice), the others the gate's.
+    from rovergate.config import GateConfig
+    inf, frustum = (new_gate(n, np.zeros((1, 3), np.float32)).filter
+                    for n in ("gated-ray-inf", "gated"))
+    cfg = GateConfig()
+    assert (inf.k, frustum.k) == (cfg.ray_inf_k, cfg.k)
+    assert inf.epsilon_m == pytest.approx(frustum.epsilon_m * cfg.ray_inf_epsilon_frac
+                                          / cfg.epsilon_frac)
     assert {filters[n] for n in CONDITIONS if not n.startswith("gated-")} == {ObservationGate}
 
 

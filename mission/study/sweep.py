@@ -73,7 +73,12 @@ def _study(cfg: SweepConfig, conditions: tuple[str, ...], out: Path,
            k: int | None = None, eps: float | None = None) -> StudyConfig:
     mission = cfg.mission
     if k is not None:
-        mission = replace(mission, gate=replace(mission.gate, k=k, epsilon_frac=eps))
+        # The swept gate's own fields, and the shared ones (which the sweep committed on
+        # 2026-12-05 set: gated-ray-inf read them then).
+        fields = {"k": k, "epsilon_frac": eps}
+        if cfg.condition == "gated-ray-inf":
+            fields.update(ray_inf_k=k, ray_inf_epsilon_frac=eps)
+        mission = replace(mission, gate=replace(mission.gate, **fields))
     return StudyConfig(starts=cfg.starts, conditions=conditions, platform=(cfg.platform,),
                        steps=cfg.steps, seeds=cfg.seeds, workers=cfg.workers, out=out,
                        bootstrap=cfg.bootstrap, progress=False, mission=mission)
