@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 from dataclasses import replace
@@ -392,6 +393,12 @@ def test_validation_tables_pool_suppression_as_ratios_of_sums():
     assert s["precision"] == pytest.approx(90 / 110)
     assert s["recall"] == pytest.approx(90 / 350)
     assert s["wrongly_withheld_per_step"] == 1.0
+    # The tables print each share with the point-steps it is of.
+    from mission.study.validation import _share
+    assert s["recalled"] == pytest.approx(90)
+    assert _share(s["precision"], s["withheld_fp"], s["withheld"]) == "0.82 (90 / 110)"
+    assert _share(s["recall"], 2e6 * s["recall"], 2e6) == "0.26 (514k / 2.0M)"
+    assert _share(None, 0.0, 0.0) == "—"
 
 
 @pytest.mark.e2e
@@ -416,6 +423,8 @@ def test_a_study_of_cells_writes_each_cell_and_the_validation_tables(tmp_path: P
     assert drifted["platform"] == "rover" and drifted["sensing"]["drift_xy_m"] > 0
     text = (out / "validation.md").read_text()
     assert "## rover, drift" in text and "Gate, pose-aware" in text and "Placebo" in text
+    # Each gate's pooled suppression per platform, with its point-steps.
+    assert re.search(r"- rover, Gate, pose-aware: suppression precision (—|[0-9.]+ \()", text)
     for name in ("validation_coverage.png", "validation_suppression.png", "summary.json"):
         assert (out / name).stat().st_size > 0
 
