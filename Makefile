@@ -5,6 +5,9 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
+# The console's test drives Debian's chromium; installed here when missing (as root, or with
+# sudo), never downloaded by Playwright.
+BROWSER := $(VENV)/.browser-stamp
 RUN_OUT ?= runs/default
 
 .PHONY: run test lint bench clean
@@ -16,6 +19,14 @@ $(STAMP): pyproject.toml Makefile
 	$(BIN)/python -m pip install -q -e '.[dev,viz,cluster]'
 	touch $(STAMP)
 
+$(BROWSER):
+	command -v chromium >/dev/null || { \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -q && \
+	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q chromium; }
+	command -v chromium >/dev/null
+	mkdir -p $(VENV) && touch $@
+
 run: $(STAMP)
 	$(BIN)/rovergate run --out $(RUN_OUT)
 
@@ -23,7 +34,7 @@ run: $(STAMP)
 # the fast tests first, so that a failure shows in a minute or two; then the end-to-end tests.
 # Both two at a time (the fast ones 1:41 became 1:15; most of the end-to-end tests' time is
 # processes starting and waiting on each other).
-test: $(STAMP)
+test: $(STAMP) $(BROWSER)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir $(VENV)/site

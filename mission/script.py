@@ -29,6 +29,10 @@ boundary and is acknowledged on the downlink. The station records everything und
 ``OUT/ground``; the mission's report lists the commands it executed (``metrics.json``,
 ``link.commands``).
 
+``[ground]`` may also say ``web = true`` (and ``web_port``): the mission's ground station then
+serves the operator's console on loopback (:mod:`mission.link.console`), timeline or not, and
+the log names its address.
+
 The ground sees the rover's step only from the downlinked status, so "at step N" means "once
 the ground has received a status of step N or later". A window is numbered from 1 in the
 mission's contact plan; the ground knows the plan, and sends the command once it receives
@@ -48,6 +52,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import queue
 import threading
 import tomllib
 import typing
@@ -83,6 +88,15 @@ class MissionScript:
     timeline: list[TimelineEntry] = field(default_factory=list)
     station_credentials: Path | None = None
     source: str = "<python>"
+    web: bool = False
+    """Serve the operator's console from the mission's ground station (on loopback)."""
+    web_port: int = 0
+
+
+#: What a mission file's [ground] table takes.
+GROUND_KEYS = {"credentials": "the station's credentials directory, made by `rovergate "
+               "credentials`", "web": "true: serve the operator's console on loopback",
+               "web_port": "the console's port, 0 for a free one"}
 
 
 # --- reading a mission file -------------------------------------------------------------------
@@ -105,9 +119,16 @@ def parse_script(data: dict[str, Any], source: str = "<python>") -> MissionScrip
     data = dict(data)
     timeline_data = data.pop("timeline", [])
     ground = data.pop("ground", {})
-    if not isinstance(ground, dict) or set(ground) - {"credentials"}:
-        raise ConfigError(f"{source}: [ground] takes only `credentials` (the station's "
-                          "credentials directory, made by `rovergate credentials`)")
+    if not isinstance(ground, dict) or set(ground) - set(GROUND_KEYS):
+        raise ConfigError(f"{source}: [ground] takes only " + ", ".join(
+            f"`{k}` ({what})" for k, what in GROUND_KEYS.items()))
+    web = ground.get("web", False)
+    if not isinstance(web, bool):
+        raise ConfigError(f"{source}: [ground] `web` must be true or false, got {web!r}")
+    port = ground.get("web_port", 0)
+    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+        raise ConfigError(f"{source}: [ground] `web_port` must be a port, 0 (a free one) to "
+                          f"65535, got {port!r}")
     _check_types(MissionConfig, data, source, "")
     try:
         config = from_dict(MissionConfig, data, source)
@@ -116,23 +137,22 @@ def parse_script(data: dict[str, Any], source: str = "<python>") -> MissionScrip
                           "`name` in [planner]); see `rovergate run --help`") from None
     if not isinstance(timeline_data, list):
         raise ConfigError(f"{source}: `timeline` must be an array of tables ([[timeline]])")
-    timeline = [_entry(e, source, i) for i, e in enumerate(timeline_data)]
+    timeline = [_entry(e, source, i, config) for i, e in enumerate(timeline_data)]
     station = Path(ground["credentials"]) if ground.get("credentials") else None
-    return MissionScript(config, timeline, station, source)
+    return MissionScript(config, timeline, station, source, web, port)
 
 
-def _entry(e: Any, source: str, i: int) -> TimelineEntry:
+def _entry(e: Any, source: str, i: int, config: MissionConfig) -> TimelineEntry:
     where = f"{source}: timeline entry {i + 1}"
     if not isinstance(e, dict) or set(e) - {"step", "window", "command"}:
         raise ConfigError(f"{where}: takes `command` and one of `step` or `window`")
     if not isinstance(e.get("command"), str):
         raise ConfigError(f"{where}: needs `command`, a ground command as `rovergate ground` "
                           "takes it (e.g. \"set gate.k=3\")")
-    from mission.link.ground import parse_command
     try:
-        parse_command(e["command"], 0)
+        check_timeline_command(config, e["command"])
     except ValueError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
+        raise ConfigError(f"{where}: {e['command']!r} would be refused: {exc}") from None
     if ("step" in e) == ("window" in e):
         raise ConfigError(f"{where}: give exactly one of `step` (a planning step) or "
                           "`window` (a contact window, from 1)")
@@ -142,6 +162,20 @@ def _entry(e: Any, source: str, i: int) -> TimelineEntry:
         raise ConfigError(f"{where}: `{'step' if 'step' in e else 'window'}` must be an "
                           f"integer of at least {least}, got {value!r}")
     return TimelineEntry(e["command"], step=e.get("step"), window=e.get("window"))
+
+
+def check_timeline_command(config: MissionConfig, line: str) -> None:
+    """A timeline command, held against the allowlist (:mod:`mission.link.commands`) with
+    this mission's planners, and a ``set`` against the rover's own check of the values
+    (:func:`mission.link.operations.apply_settings`): what the rover would refuse in flight
+    is refused before anything starts (CommandError says why)."""
+    from mission.link.commands import local_dictionary, read_command
+    from mission.link.operations import apply_settings
+    from rovergate.config import planner_programs
+    command = read_command(line, 0, local_dictionary(tuple(planner_programs(config.planner)),
+                                                     "mission"))
+    if command.verb == "set":
+        apply_settings(config, list(command.args))
 
 
 def _check_types(cls: type, data: dict[str, Any], source: str, prefix: str) -> None:
@@ -275,13 +309,13 @@ class Mission:
     def at_step(self, step: int, command: str) -> Mission:
         """Send ``command`` once the ground has seen the rover reach ``step``."""
         self.script.timeline.append(_entry({"step": step, "command": command},
-                                           self.script.source, len(self.timeline)))
+                                           self.script.source, len(self.timeline), self.config))
         return self
 
     def at_window(self, window: int, command: str) -> Mission:
         """Send ``command`` when contact window ``window`` (from 1) opens."""
         self.script.timeline.append(_entry({"window": window, "command": command},
-                                           self.script.source, len(self.timeline)))
+                                           self.script.source, len(self.timeline), self.config))
         return self
 
     def run(self, progress: bool = False) -> MissionResult:
@@ -301,7 +335,7 @@ def run_script(script: MissionScript) -> int:
     it over the authenticated uplink. Returns the mission's exit code."""
     from mission.run import main as run_main
     cfg = script.config
-    if not script.timeline:
+    if not script.timeline and not script.web:
         return run_main(cfg)
     if cfg.in_process:
         raise ConfigError(f"{script.source}: a timeline goes through the ground link, which "
@@ -316,7 +350,8 @@ def run_script(script: MissionScript) -> int:
     out = Path(cfg.out)
     _check_timeline(cfg, script)
     cfg, station_credentials = _credentials(cfg, script, out)
-    player = TimelinePlayer(cfg, script.timeline, station_credentials, out)
+    player = TimelinePlayer(cfg, script.timeline, station_credentials, out,
+                            web_port=script.web_port if script.web else None)
     try:
         return run_main(cfg, on_link=player.start)
     finally:
@@ -349,6 +384,11 @@ def _check_timeline(cfg: MissionConfig, script: MissionScript) -> None:
     from mission.link.contact import ContactPlan
     windows = ContactPlan(cfg.contact).windows_between(0, cfg.steps)
     for e in script.timeline:
+        try:  # again with the flags given after the file
+            check_timeline_command(cfg, e.command)
+        except ValueError as exc:
+            raise ConfigError(f"{script.source}: timeline {e.describe()} would be refused: "
+                              f"{exc}") from None
         if e.step is not None and e.step > cfg.steps:
             raise ConfigError(f"{script.source}: timeline {e.describe()} is after the "
                               f"mission's last step ({cfg.steps})")
@@ -362,9 +402,11 @@ class TimelinePlayer:
     timeline command when its step or window comes (as the downlinked status shows)."""
 
     def __init__(self, cfg: MissionConfig, timeline: list[TimelineEntry],
-                 credentials: Path, out: Path) -> None:
+                 credentials: Path, out: Path, web_port: int | None = None) -> None:
         from mission.link.contact import ContactPlan
         self.cfg = cfg
+        self.web_port = web_port
+        self.console: Any = None
         self.credentials = credentials
         self.out = out
         windows = ContactPlan(cfg.contact).windows_between(0, cfg.steps)
@@ -377,6 +419,8 @@ class TimelinePlayer:
         self._cv = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._uplink_thread: threading.Thread | None = None
+        self._outbox: queue.Queue[Any] = queue.Queue()
 
     def start(self) -> None:
         """Called once the mission's ground endpoint is up (its ground.json written)."""
@@ -387,6 +431,24 @@ class TimelinePlayer:
         self.station.on_status = self._on_status
         self._thread = threading.Thread(target=self._play, name="timeline", daemon=True)
         self._thread.start()
+        if self.web_port is not None:
+            from mission.link.console import Console, ConsoleConfig
+            self._uplink_thread = threading.Thread(target=self._uplink, name="console-uplink",
+                                                   daemon=True)
+            self._uplink_thread.start()
+            self.console = Console(self.station, ConsoleConfig(port=self.web_port),
+                                   self._outbox.put, logging.getLogger("rovergate.ground"))
+            self.console.start()
+
+    def _uplink(self) -> None:
+        """Put the console's commands on the uplink (a thread of its own: the timeline's
+        waits on the ground's picture of the rover)."""
+        while not self._stop.is_set():
+            try:
+                command = self._outbox.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            self.station.transmit(command, give_up=self._stop.is_set)
 
     def _on_status(self, step: int) -> None:
         with self._cv:
@@ -410,8 +472,11 @@ class TimelinePlayer:
         self._stop.set()
         with self._cv:
             self._cv.notify_all()
-        if self._thread is not None:
-            self._thread.join(30)
+        if self.console is not None:
+            self.console.stop()
+        for thread in (self._thread, self._uplink_thread):
+            if thread is not None:
+                thread.join(30)
         if self.station is None:
             return  # the mission ended before its link came up: nothing was played
         self.station.close()

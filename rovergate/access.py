@@ -23,7 +23,8 @@ truth replies are therefore denied on their way out instead (egress ``reply``).
 
 **The ground network** is the bridge's session (:mod:`mission.link.bridge`) and the ground
 station. The station may put only on the uplink and the acknowledgement keys, subscribe only
-to the downlink, and declare only its own liveliness token (:func:`ground_network`); with
+to the downlink and the transmitter's reports of what it radiated, and declare only its own
+liveliness token (:func:`ground_network`); with
 credentials, only a link whose certificate names the station has even that.
 """
 
@@ -97,7 +98,7 @@ def ground_network(namespace: str, station_names: tuple[str, ...] = ()) -> dict[
             _rule("station-sends", ("put",), ("ingress",), "allow",
                   (keys.key("uplink"), keys.key("downlink_ack"))),
             _rule("station-listens", ("declare_subscriber",), ("ingress",), "allow",
-                  (keys.key("downlink"),)),
+                  (keys.key("downlink"), keys.key("uplink_report"))),
             _rule("station-is-there", ("liveliness_token",), ("ingress",), "allow",
                   (keys.alive("station"),)),
             _rule("station-watches", ("declare_liveliness_subscriber", "liveliness_query"),

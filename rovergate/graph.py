@@ -114,6 +114,11 @@ TOPICS: dict[str, Topic] = {
                           "sequence numbers the ground station received", network="ground"),
     "uplink": Topic("uplink", "rovergate_msgs/msg/GroundCommand",
                     "commands (`id`, `verb`, `args`)", network="ground"),
+    "uplink_report": Topic("uplink/radiated", "rovergate_msgs/msg/CommandAck",
+                           "the ground transmitter's report that it radiated a command "
+                           "(`state` radiated, `step`: the link step, `received_s`: when it "
+                           "reaches the rover); a ground-side report, so no light time",
+                           network="ground"),
 }
 
 
@@ -283,7 +288,8 @@ def check_graph() -> None:
 #: Topics that cross the graph's edge (every module's timing; the ground link): their ends.
 _EDGE: dict[str, tuple[str, str]] = {
     "timing": ("every module", "mission"), "downlink": ("mission", "ground station"),
-    "downlink_ack": ("ground station", "mission"), "uplink": ("ground station", "mission")}
+    "downlink_ack": ("ground station", "mission"), "uplink": ("ground station", "mission"),
+    "uplink_report": ("ground transmitter (the mission's bridge)", "ground station")}
 
 
 def topic_table(namespace: str = "rover", ground_namespace: str = "ground") -> str:

@@ -463,6 +463,7 @@ _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]
     "downlink": (frame_to_ros, _with_step(frame_from_ros)),
     "downlink_ack": (ack_to_ros, ack_from_ros),
     "uplink": (command_to_ros, command_from_ros),
+    "uplink_report": (command_ack_to_ros, _with_step(command_ack_from_ros)),
 }
 
 #: What a telemetry item of each kind carries: (ROS 2 type, to_ros, from_ros -> value).

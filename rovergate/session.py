@@ -6,6 +6,7 @@ and every module's logic load without it."""
 from __future__ import annotations
 
 import json
+import re
 import socket
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,10 +40,17 @@ class TlsFiles:
                                   "create them with `rovergate credentials --out DIR`") from None
 
 
+#: How long a peer with TLS credentials tries to connect before it gives up (a refused
+#: certificate shows as this timeout).
+TLS_CONNECT_TIMEOUT_S = 15.0
+
+
 def zenoh_config(cfg: SessionConfig, access_control: dict[str, Any] | None = None,
-                 tls: TlsFiles | None = None) -> zenoh.Config:
+                 tls: TlsFiles | None = None,
+                 connect_timeout_s: float = TLS_CONNECT_TIMEOUT_S) -> zenoh.Config:
     """The zenoh.Config of a :class:`SessionConfig`, with an ``access_control`` section
-    (:mod:`rovergate.access`) and mutual-TLS credentials when given."""
+    (:mod:`rovergate.access`) and mutual-TLS credentials when given (a TLS peer gives up
+    connecting after ``connect_timeout_s``)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(cfg.mode))
     conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
@@ -62,21 +70,31 @@ def zenoh_config(cfg: SessionConfig, access_control: dict[str, Any] | None = Non
     if tls is not None and cfg.connect:
         # A peer that gets no TLS link fails after the timeout, instead of retrying in the
         # background as if the link were slow (a refused certificate shows as that timeout).
-        conf.insert_json5("connect/timeout_ms", "15000")
+        conf.insert_json5("connect/timeout_ms", str(max(1, int(connect_timeout_s * 1000))))
         conf.insert_json5("connect/exit_on_failure", "true")
     return conf
 
 
+def zenoh_reason(exc: BaseException) -> str:
+    """Zenoh's error text without the Rust source location it ends with (``at
+    .../orchestrator.rs:388.``), which tells a user nothing."""
+    return _RUST_LOCATION.sub("", str(exc)).strip().rstrip(".!") or type(exc).__name__
+
+
+_RUST_LOCATION = re.compile(r"\s*at\s+\S+\.rs:\d+(:\d+)?\.?")
+
+
 def open_session(cfg: SessionConfig, access_control: dict[str, Any] | None = None,
-                 tls: TlsFiles | None = None) -> zenoh.Session:
+                 tls: TlsFiles | None = None,
+                 connect_timeout_s: float = TLS_CONNECT_TIMEOUT_S) -> zenoh.Session:
     """Open a Zenoh session; a bad endpoint gives one line saying which and how to fix it."""
     try:
-        return zenoh.open(zenoh_config(cfg, access_control, tls))
+        return zenoh.open(zenoh_config(cfg, access_control, tls, connect_timeout_s))
     except Exception as exc:
         raise ConfigError(
             f"could not open a Zenoh session (mode={cfg.mode}, listen={list(cfg.listen)}, "
-            f"connect={list(cfg.connect)}): {exc}. Check the endpoints: they look like "
-            "tcp/127.0.0.1:7447, a listen port must be free, and a tls/ endpoint needs "
+            f"connect={list(cfg.connect)}): {zenoh_reason(exc)}. Check the endpoints: they "
+            "look like tcp/127.0.0.1:7447, a listen port must be free, and a tls/ endpoint needs "
             "credentials from the same CA as its peer's (a refused certificate shows as a "
             "timeout).") from None
 

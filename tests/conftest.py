@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from mission.link.bridge import LINK_FILE
 from rover_sim.catalog import load_scene, resolve_scene
 from rovergate.config import MissionConfig, SessionConfig
 from rovergate.session import free_loopback_port, zenoh_config
@@ -217,3 +218,77 @@ class StatusWatcher:
     def close(self) -> None:
         self._sub.undeclare()
         self.session.close()
+
+
+class LinkedMission:
+    """A process-set mission with a ground station beside it (found through OUT/ground.json)
+    on the authenticated link (mutual TLS, credentials made for the test), and the mission
+    clock's ticks."""
+
+    def __init__(self, tmp_path: Path, *flags: str, steps: int,
+                 ground_flags: tuple[str, ...] = ()) -> None:
+        from mission.link.credentials import CredentialsConfig, create
+        self.port = free_loopback_port()
+        self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
+        self.credentials = create(CredentialsConfig(out=tmp_path / "credentials"))
+        # The ground link takes a free port of its own and says which in OUT/ground.json.
+        self.mission = RovergateProcess(["run", "--steps", str(steps), "--no-progress", "--out",
+                                str(self.out), "--listen", f"tcp/127.0.0.1:{self.port}",
+                                "--contact.credentials", str(self.credentials["rover"]), *flags])
+        self.ground: RovergateProcess | None = None
+        self.watcher: StatusWatcher | None = None
+        try:
+            # Logged once OUT/ground.json is written.
+            line = self.mission.wait_for_line("link to the ground on").string
+            link = json.loads((self.out / LINK_FILE).read_text())
+            assert link["pid"] == self.mission.proc.pid and \
+                link["ground_namespace"] == "ground" and link["rover_namespace"] == "rover", link
+            assert f"link to the ground on {link['listen'][0]} " in line
+            assert link["endpoints"][0].startswith("tls/127.0.0.1:"), link
+            self.watcher = StatusWatcher(self.port)
+            self.ground = RovergateProcess(["ground", "--mission", str(self.out), "--out",
+                                   str(self.ground_out), "--credentials",
+                                   str(self.credentials["station"]), *ground_flags],
+                                           stdin=True)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def steps(self) -> list[int]:
+        return self.watcher.steps
+
+    def wait_step(self, step: int, timeout_s: float = 240) -> int:
+        self.watcher.wait_step(step, timeout_s)
+        return max(self.watcher.steps)
+
+    def command(self, line: str) -> None:
+        self.ground.send(line)
+
+    def wait_for_row(self, pattern: str, pred, timeout_s: float = 240) -> dict:
+        """The first row of the station's received.jsonl matching ``pred``, once the station
+        has logged a line matching ``pattern`` (it logs a row after writing it)."""
+        self.ground.wait_for_line(pattern, timeout_s)
+        rows = [json.loads(line) for line in
+                (self.ground_out / "received.jsonl").read_text().splitlines()]
+        return next(r for r in rows if pred(r))
+
+    def close(self) -> None:
+        if self.watcher is not None:
+            self.watcher.close()
+        for m in (self.mission, self.ground):
+            if m is not None:
+                m.kill()
+
+    def finish(self, timeout_s: float = 300) -> tuple[dict, list[dict], str]:
+        try:
+            assert self.mission.finish(timeout_s) == 0, self.mission.text[-4000:]
+            self.ground.proc.stdin.close()
+            assert self.ground.finish(60) == 0, self.ground.text[-3000:]
+        finally:
+            self.close()
+        assert not (self.out / LINK_FILE).exists()  # the link is down: its file has gone
+        metrics = json.loads((self.out / "metrics.json").read_text())
+        rows = [json.loads(line) for line in
+                (self.ground_out / "received.jsonl").read_text().splitlines()]
+        return metrics, rows, self.ground.text

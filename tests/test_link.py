@@ -9,14 +9,15 @@ import re
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import tyro
 import zenoh
-from conftest import ROVERGATE, RovergateProcess, StatusWatcher, run_cli
+from conftest import ROVERGATE, LinkedMission, RovergateProcess, run_cli
 
-from mission.link.bridge import LINK_FILE, check_ground_endpoints, loopback
+from mission.link.bridge import LINK_FILE, check_ground_endpoints, connectable, loopback
 from mission.link.contact import ContactPlan, ContactPlanError
 from mission.link.downlink import DownlinkQueue
 from mission.link.ground import GroundConfig, LinkFileError, gaps, parse_command, resolve_link
@@ -26,6 +27,7 @@ from mission.runtime.process_set import program_argv
 from rovergate.config import ContactConfig, MissionConfig, check_values
 from rovergate.errors import ConfigError
 from rovergate.node import cdr_encoding
+from rovergate.session import free_loopback_port
 
 
 def test_periodic_and_explicit_windows():
@@ -279,6 +281,36 @@ def test_ground_command_without_a_mission_is_one_line(tmp_path: Path):
     assert r.stderr.startswith(f"error: {tmp_path / 'none' / LINK_FILE} does not exist")
 
 
+@pytest.mark.parametrize("listen, connect", [
+    ("tls/0.0.0.0:7448", "tls/127.0.0.1:7448"),
+    ("tcp/[::]:7448", "tcp/[::1]:7448"),
+    ("tls/127.0.0.1:7448#iface=lo", "tls/127.0.0.1:7448#iface=lo"),
+    ("tls/rover.example:7448", "tls/rover.example:7448"),
+])
+def test_the_link_file_names_an_address_a_station_can_connect_to(listen, connect):
+    assert connectable(listen) == connect
+
+
+def test_the_station_refuses_what_the_rover_would_before_sending_it(tmp_path: Path):
+    """`--send "set gate.k=500"` is one line and exit 2 before anything starts (it used to go
+    up and be refused in flight); a station that never reaches a mission stops at its
+    --timeout-s even with a command waiting to go up, and says so."""
+    r = subprocess.run([*ROVERGATE, "ground", "--connect", "tcp/127.0.0.1:9", "--out",
+                        str(tmp_path / "g"), "--send", "set gate.k=500"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "--send 'set gate.k=500': gate.k must be between 1 and 100, got '500'" in r.stderr
+    assert not (tmp_path / "g").exists()
+    port = free_loopback_port()  # nothing listens there
+    t0 = time.monotonic()
+    r = subprocess.run([*ROVERGATE, "ground", "--connect", f"tcp/127.0.0.1:{port}", "--out",
+                        str(tmp_path / "g"), "--send", "pause", "--no-stdin", "--timeout-s",
+                        "3"], capture_output=True, text=True, timeout=120)
+    assert time.monotonic() - t0 < 60  # not stuck waiting for a bridge that never comes
+    assert r.returncode == 1 and "was never on the link in 3 s" in r.stderr, r.stderr[-2000:]
+    assert "command 1 not sent (pause)" in r.stderr
+
+
 def test_settings_change_in_flight_only_where_allowed():
     cfg, modules = apply_settings(MissionConfig(), ["gate.k=3", "gate.epsilon_frac=0.05"])
     assert (cfg.gate.k, cfg.gate.epsilon_frac, modules) == (3, 0.05, {"gate"})
@@ -353,79 +385,6 @@ def test_a_planner_program_may_not_take_a_built_in_name():
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
-class LinkedMission:
-    """A process-set mission with a ground station beside it (found through OUT/ground.json)
-    on the authenticated link (mutual TLS, credentials made for the test), and the mission
-    clock's ticks."""
-
-    def __init__(self, tmp_path: Path, *flags: str, steps: int) -> None:
-        from mission.link.credentials import CredentialsConfig, create
-        from rovergate.session import free_loopback_port
-        self.port = free_loopback_port()
-        self.out, self.ground_out = tmp_path / "m", tmp_path / "g"
-        self.credentials = create(CredentialsConfig(out=tmp_path / "credentials"))
-        # The ground link takes a free port of its own and says which in OUT/ground.json.
-        self.mission = RovergateProcess(["run", "--steps", str(steps), "--no-progress", "--out",
-                                str(self.out), "--listen", f"tcp/127.0.0.1:{self.port}",
-                                "--contact.credentials", str(self.credentials["rover"]), *flags])
-        self.ground: RovergateProcess | None = None
-        self.watcher: StatusWatcher | None = None
-        try:
-            # Logged once OUT/ground.json is written.
-            line = self.mission.wait_for_line("link to the ground on").string
-            link = json.loads((self.out / LINK_FILE).read_text())
-            assert link["pid"] == self.mission.proc.pid and \
-                link["ground_namespace"] == "ground" and link["rover_namespace"] == "rover", link
-            assert f"link to the ground on {link['endpoints'][0]} " in line
-            assert link["endpoints"][0].startswith("tls/127.0.0.1:"), link
-            self.watcher = StatusWatcher(self.port)
-            self.ground = RovergateProcess(["ground", "--mission", str(self.out), "--out",
-                                   str(self.ground_out), "--credentials",
-                                   str(self.credentials["station"])], stdin=True)
-        except BaseException:
-            self.close()
-            raise
-
-    @property
-    def steps(self) -> list[int]:
-        return self.watcher.steps
-
-    def wait_step(self, step: int, timeout_s: float = 240) -> int:
-        self.watcher.wait_step(step, timeout_s)
-        return max(self.watcher.steps)
-
-    def command(self, line: str) -> None:
-        self.ground.send(line)
-
-    def wait_for_row(self, pattern: str, pred, timeout_s: float = 240) -> dict:
-        """The first row of the station's received.jsonl matching ``pred``, once the station
-        has logged a line matching ``pattern`` (it logs a row after writing it)."""
-        self.ground.wait_for_line(pattern, timeout_s)
-        rows = [json.loads(line) for line in
-                (self.ground_out / "received.jsonl").read_text().splitlines()]
-        return next(r for r in rows if pred(r))
-
-    def close(self) -> None:
-        if self.watcher is not None:
-            self.watcher.close()
-        for m in (self.mission, self.ground):
-            if m is not None:
-                m.kill()
-
-    def finish(self, timeout_s: float = 300) -> tuple[dict, list[dict], str]:
-        try:
-            assert self.mission.finish(timeout_s) == 0, self.mission.text[-4000:]
-            self.ground.proc.stdin.close()
-            assert self.ground.finish(60) == 0, self.ground.text[-3000:]
-        finally:
-            self.close()
-        assert not (self.out / LINK_FILE).exists()  # the link is down: its file has gone
-        metrics = json.loads((self.out / "metrics.json").read_text())
-        rows = [json.loads(line) for line in
-                (self.ground_out / "received.jsonl").read_text().splitlines()]
-        return metrics, rows, self.ground.text
-
-
 @pytest.mark.e2e
 def test_telemetry_crosses_blackouts_whole_and_commands_wait_for_a_window(tmp_path: Path):
     """Windows of 2 steps every 6, light time 1 step: four blackouts in 24 steps. Every
@@ -461,6 +420,32 @@ def test_telemetry_crosses_blackouts_whole_and_commands_wait_for_a_window(tmp_pa
         "mission-done" in events
     assert metrics["link"]["undelivered"] == 0
     assert "gaps: none" in ground_log
+
+
+@pytest.mark.e2e
+def test_the_readmes_tls_recipe_on_one_machine(tmp_path: Path):
+    """`--contact.ground-listen tls/0.0.0.0:PORT` (every interface) and `rovergate ground
+    --credentials DIR/station`: ground.json names 127.0.0.1, which the rover's certificate
+    holds, and the station is on the link at once (it used to connect to 0.0.0.0, fail the
+    certificate check and print a Zenoh timeout with a Rust source path after 19 s). A name
+    the certificate does not hold is one line, within the station's --timeout-s."""
+    m = LinkedMission(tmp_path, "--contact.ground-listen", "tls/0.0.0.0:0", steps=6)
+    link = json.loads((m.out / LINK_FILE).read_text())
+    assert link["listen"][0].startswith("tls/0.0.0.0:"), link
+    port = link["listen"][0].rsplit(":", 1)[1]
+    m.ground.wait_for_line("the rover's mission manager is on the link", 30)
+    t0 = time.monotonic()
+    r = subprocess.run([*ROVERGATE, "ground", "--connect", f"tls/127.0.0.2:{port}",
+                        "--credentials", str(m.credentials["station"]), "--out",
+                        str(tmp_path / "g2"), "--no-stdin", "--timeout-s", "3"],
+                       capture_output=True, text=True, timeout=120)
+    assert time.monotonic() - t0 < 60
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr[-2000:]
+    assert f"no TLS link to the mission at tls/127.0.0.2:{port} within 3 s" in r.stderr
+    assert ".rs:" not in r.stderr
+    metrics, rows, _ = m.finish()
+    assert metrics["state"] == "done"
+    assert [r["state"] for r in rows if r["kind"] == "status"][-1] == "done"
 
 
 @pytest.mark.e2e

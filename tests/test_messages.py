@@ -71,6 +71,7 @@ VALUES = {
                                b"\x00\x01\x00\x00abc"),
     "downlink_ack": DownlinkAck([3, 4, 9]),
     "uplink": GroundCommand(5, "set", ["gate.k=3", "gate.epsilon_frac=0.05"]),
+    "uplink_report": CommandAck(5, "set", "radiated", 7, 480.0, ""),
 }
 #: Topics whose step is 0 on the wire (queryables and the ground link's acks and commands).
 STEP_ZERO = ("truth_surface", "truth_occupancy", "downlink_ack", "uplink")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -38,7 +39,16 @@ def test_the_example_mission_file_reads_as_its_settings_and_timeline():
     ("[[timeline]]\nstep = 2\nwindow = 1\ncommand = 'pause'", "exactly one of `step`"),
     ("[[timeline]]\nwindow = 0\ncommand = 'pause'", "`window` must be an integer of at least 1"),
     ("[[timeline]]\nstep = 2", "needs `command`"),
+    # What the rover would refuse in flight is refused before anything starts.
+    ("[[timeline]]\nstep = 2\ncommand = 'set planner.n_candidates=9999'",
+     "planner.n_candidates must be between 1 and 256, got '9999'"),
+    ("[[timeline]]\nstep = 2\ncommand = 'set gate.k=2.5'", "gate.k takes an integer"),
+    ("[[timeline]]\nstep = 2\ncommand = 'set scene.name=3'", "cannot set 'scene.name'"),
+    ("[[timeline]]\nstep = 2\ncommand = 'condition telepathy'", "unknown condition"),
+    ("[[timeline]]\nstep = 2\ncommand = 'planner nowhere'", "unknown planner 'nowhere'"),
     ("[ground]\nkey = 'x'", "[ground] takes only `credentials`"),
+    ("[ground]\nweb = 'yes'", "[ground] `web` must be true or false"),
+    ("[ground]\nweb = true\nweb_port = 70000", "`web_port` must be a port"),
 ])
 def test_a_bad_mission_file_is_refused_in_one_line_naming_what(tmp_path: Path, text, names):
     path = tmp_path / "bad.toml"
@@ -77,6 +87,14 @@ def test_a_timeline_outside_the_mission_is_refused_before_anything_starts(tmp_pa
     assert not (tmp_path / "run").exists()  # no credentials made, nothing written
     r = run_cli("run", str(EXAMPLE), "--steps", "40", "--resume", "--out", str(tmp_path / "r"))
     assert r.returncode == 2 and "a timeline is not resumed" in r.stderr, r.stderr[-2000:]
+    # A flag after the file that makes a timeline command one the rover would refuse.
+    bad = tmp_path / "bad.toml"
+    bad.write_text(EXAMPLE.read_text().replace("set planner.n_candidates=24",
+                                               "set planner.n_candidates=9999"))
+    r = run_cli("run", str(bad), "--out", str(tmp_path / "b"))
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and \
+        "planner.n_candidates must be between 1 and 256" in r.stderr, r.stderr[-2000:]
+    assert not (tmp_path / "b").exists()
 
 
 @pytest.mark.e2e
@@ -106,6 +124,30 @@ def test_the_example_mission_file_runs_and_its_commands_are_acknowledged(tmp_pat
         assert json.loads((out / "config.2.json").read_text())["condition"] == "gated"
     else:
         assert "the mission had ended" in acks["condition"]["detail"], acks
+
+
+@pytest.mark.e2e
+def test_a_mission_files_ground_station_serves_the_console(tmp_path: Path):
+    """`web = true` in [ground], with no timeline: the run's own ground station serves the
+    console on loopback, names it in the log, and the console reports the mission's end."""
+    from tests.conftest import RovergateProcess
+    path = tmp_path / "web.toml"
+    path.write_text('steps = 30\ncondition = "obs"\n[contact]\nperiod_steps = 4\n'
+                    'window_steps = 2\n[ground]\nweb = true\n')
+    m = RovergateProcess(["run", str(path), "--out", str(tmp_path / "m"), "--no-progress"])
+    try:
+        url = m.wait_for_line(r"console on (http://127\.0\.0\.1:\d+/)").group(1)
+        with urllib.request.urlopen(url + "api/state", timeout=10) as response:
+            state = json.loads(response.read())
+        assert response.status == 200 and "rover" in state and "commands" in state
+        assert m.finish(300) == 0, m.text[-3000:]
+    finally:
+        m.kill()
+    assert load_script(path).web
+    rows = [json.loads(line) for line in
+            (tmp_path / "m" / "ground" / "received.jsonl").read_text().splitlines()]
+    assert [r["event"] for r in rows if r["kind"] == "event"][:3] == [
+        "mission-started", "contact-plan", "command-dictionary"]
 
 
 @pytest.mark.e2e

@@ -61,8 +61,9 @@ from rovergate.types import (
 log = logging.getLogger("rovergate.bridge")
 
 LINK_FILE = "ground.json"
-"""In the mission's directory while the link is up: ``endpoints`` (where the ground network
-listens), ``ground_namespace``, ``rover_namespace``, ``pid`` and ``host`` of the mission
+"""In the mission's directory while the link is up: ``endpoints`` (where a station on this
+machine connects to the ground network: :func:`connectable`), ``listen`` (where it listens, as
+given), ``ground_namespace``, ``rover_namespace``, ``pid`` and ``host`` of the mission
 manager, ``started_at`` (ISO 8601)."""
 
 DEFAULT_GROUND_LISTEN = "tcp/127.0.0.1:0"
@@ -70,6 +71,9 @@ DEFAULT_GROUND_LISTEN = "tcp/127.0.0.1:0"
 port."""
 ANY_PORT = re.compile(r":0(?=$|#)")
 """Port 0 in an endpoint (before any #-options): take a free port."""
+ONBOARD_QUEUE_EVENT = "onboard-queue"
+"""The kind of the event radiated first in every window: the onboard queue as JSON (items,
+bytes, unacked, dropped) just before the window's radiation."""
 PORT_ATTEMPTS = 5
 """Free ports tried for an endpoint with port 0 before giving up."""
 
@@ -92,6 +96,20 @@ def ground_tls(cfg: ContactConfig) -> TlsFiles | None:
         return None
     d = Path(cfg.credentials)
     return TlsFiles(d / "ca.pem", d / "rover.pem", d / "rover.key")
+
+
+def connectable(endpoint: str) -> str:
+    """Where a station on this machine reaches an endpoint the bridge listens on: an
+    unspecified address (``0.0.0.0``, ``[::]``: every interface) becomes the loopback one, which
+    the rover's certificate names (``rovergate credentials``); any other endpoint as given."""
+    proto, _, rest = endpoint.partition("/")
+    address, hash_, options = rest.partition("#")
+    host, _, port = address.rpartition(":")
+    bare = host.strip("[]")
+    if bare in ("0.0.0.0", "::"):
+        host = "127.0.0.1" if bare == "0.0.0.0" else "[::1]"
+        return f"{proto}/{host}:{port}{hash_}{options}"
+    return endpoint
 
 
 def check_ground_endpoints(endpoints: tuple[str, ...], authenticated: bool,
@@ -152,6 +170,10 @@ class GroundBridge:
         self._lock = threading.Lock()
         self._heard: list[Any] = []
         self.drops = Drops(log, "message from the ground")
+        # The ground's transmitter (which this bridge plays) reports each command it radiates.
+        self._report = self.session.declare_publisher(
+            self.keys.key("uplink_report"), encoding=cdr_encoding("uplink_report"),
+            congestion_control=zenoh.CongestionControl.BLOCK)
         self._subs = [self.session.declare_subscriber(self.keys.key(t), self._on_ground(t))
                       for t in ("downlink_ack", "uplink")]
         self._station = False
@@ -165,6 +187,9 @@ class GroundBridge:
         self._to_rover: list[tuple[int, Any]] = []   # (arrival clock, ack or command)
         self._to_ground: list[tuple[int, TelemetryFrame]] = []
         self._budget = 0
+        self.report_queue = True
+        """Radiate the onboard queue's figures at each window's opening (not while the mission
+        drains its last telemetry: the report would keep the queue from ever emptying)."""
         self.radiated = 0
         self.dropped_reported = self.queue.dropped
 
@@ -212,7 +237,10 @@ class GroundBridge:
     def _write_link_file(self, rover_namespace: str) -> None:
         """OUT/ground.json, written whole or not at all (temp file and rename), so that a
         ground station never reads half of it."""
-        self._link = {"endpoints": list(self.endpoints),
+        # The station connects to what the file says: a wildcard address is where the bridge
+        # listens, not one anybody can connect to (a station elsewhere is given --connect).
+        self._link = {"endpoints": [connectable(e) for e in self.endpoints],
+                      "listen": list(self.endpoints),
                       "ground_namespace": self.cfg.ground_namespace,
                       "rover_namespace": rover_namespace, "pid": os.getpid(),
                       "host": socket.gethostname(),
@@ -289,6 +317,10 @@ class GroundBridge:
         self._held.extend(heard)
         if is_open and self._held:  # the ground radiates what it has
             self._to_rover.extend((k + light, v) for v in self._held)
+            for v in self._held:
+                if isinstance(v, GroundCommand):
+                    self._report.put(encode("uplink_report", CommandAck(
+                        v.id, v.verb, "radiated", k, (k + light) * self.cfg.step_s, "")))
             self._held = []
         arrived = [v for t, v in self._to_rover if t <= k]
         self._to_rover = [(t, v) for t, v in self._to_rover if t > k]
@@ -304,6 +336,12 @@ class GroundBridge:
                        f"{dropped - self.dropped_reported} status/pose samples dropped over "
                        f"the {self.cfg.queue_max_mb:g} MB bound")
             self.dropped_reported = dropped
+        if is_open and not self.plan.is_open(k - 1) and self.report_queue:
+            # At each window's opening, the onboard queue as it stands (the ground's console
+            # shows what waits aboard).
+            self._put("event", k, MissionEvent(k, ONBOARD_QUEUE_EVENT, json.dumps(
+                {"link_step": k, "items": len(self.queue), "bytes": self.queue.nbytes(),
+                 "unacked": self.queue.unacked(), "dropped": self.queue.dropped})))
         if is_open:
             self._budget += self.plan.bytes_per_step
             items = self.queue.take(self._budget, k * self.cfg.step_s, self._ack_due_s(k))
@@ -370,6 +408,7 @@ class GroundBridge:
         self._remove_link_file()
         for s in self._subs:
             s.undeclare()
+        self._report.undeclare()
         self._station_sub.undeclare()
         self._token.undeclare()
         self.session.close()

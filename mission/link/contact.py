@@ -14,8 +14,13 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from typing import Any
 
 from rovergate.config import ContactConfig
+
+CONTACT_PLAN_EVENT = "contact-plan"
+"""The kind of the event the rover downlinks at the start of a mission: the plan as JSON
+(:meth:`ContactPlan.describe`), for the ground's timeline."""
 
 
 class ContactPlanError(ValueError):
@@ -126,6 +131,15 @@ class ContactPlan:
     def bytes_per_step(self) -> int:
         """What the downlink radiates in one step of an open window."""
         return int(self.cfg.downlink_kbps * 1000 / 8 * self.cfg.step_s)
+
+    def describe(self, last_step: int) -> dict[str, Any]:
+        """The plan as the ground's console draws it: timing, rate, and every window up to
+        ``last_step`` as [start, end exclusive] in link steps."""
+        c = self.cfg
+        return {"step_s": c.step_s, "light_time_s": c.light_time_s,
+                "light_steps": self.light_steps, "downlink_kbps": c.downlink_kbps,
+                "bytes_per_step": self.bytes_per_step,
+                "windows": [list(w) for w in self.windows_between(0, last_step)]}
 
     def windows_between(self, first: int, last: int) -> list[tuple[int, int]]:
         """The windows overlapping steps ``first..last``, as (start, end exclusive)."""

@@ -10,7 +10,8 @@ still), so that a ``resume`` can come up in a later window.
 
 Nothing from the ground runs a program the launch did not name: ``planner NAME`` chooses a
 built-in planner or one of ``--planner.programs``, and ``set`` changes only the fields of
-:data:`IN_FLIGHT`, within their ranges.
+:data:`mission.link.commands.IN_FLIGHT`, within their ranges (the one allowlist, which the
+ground station and its console check too).
 
 Commands that change the configuration (``set``, ``condition``, ``planner``) restart the
 modules concerned with the new configuration; they rebuild their state from the mission's
@@ -23,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import re
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -31,6 +31,15 @@ from typing import Any, Protocol
 import numpy as np
 
 from mission.link.bridge import Delivered, GroundBridge
+from mission.link.commands import (
+    DICTIONARY_EVENT,
+    IN_FLIGHT,
+    CommandError,
+    Setting,
+    local_dictionary,
+    setting_value,
+)
+from mission.link.contact import CONTACT_PLAN_EVENT
 from mission.runtime.supervisor import RestartEvent
 from rovergate.conditions import get_condition
 from rovergate.config import MissionConfig, check_values, from_dict, planner_programs, to_dict
@@ -41,33 +50,6 @@ from rovergate.module import STOP
 from rovergate.types import CommandAck, MissionStatus, Pose
 
 log = logging.getLogger("rovergate.operations")
-
-#: What ``set`` may change in flight: ``section.field`` -> (least, most). Nothing else can be
-#: set from the ground (not a planner's command line, not a safety margin, not the sensor);
-#: a value of another type, out of range, NaN or infinite is refused. The modules built from
-#: the section restart (:func:`rovergate.graph.readers`).
-IN_FLIGHT: dict[str, tuple[float, float]] = {
-    "gate.k": (1, 100),
-    "gate.epsilon_frac": (0.001, 0.5),
-    "gate.view_tolerance_m": (0.01, 5.0),
-    "planner.n_candidates": (1, 256),
-    "planner.beam_width": (1, 16),
-    "planner.beam_depth": (1, 6),
-    "planner.beam_branch": (1, 64),
-    "planner.max_step_m": (0.1, 10.0),
-    "planner.max_attempts": (1, 64),
-    "planner.observed_min_views": (1, 50),
-    "planner.gain_voxel_m": (0.05, 2.0),
-}
-
-
-#: What ``set`` reads as a value: a plain decimal number, short (json.loads then cannot
-#: overflow, recurse or take long), or NaN and the infinities (refused by the range check).
-_NUMBER = re.compile(r"-?\d{1,12}(\.\d{1,12})?([eE][-+]?\d{1,3})?|NaN|-?Infinity")
-
-
-class CommandError(ValueError):
-    """A ground command the rover refuses (its acknowledgement says why)."""
 
 
 def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig, set[str]]:
@@ -84,18 +66,9 @@ def apply_settings(cfg: MissionConfig, pairs: list[str]) -> tuple[MissionConfig,
                                + ", ".join(IN_FLIGHT))
         section, _, name = key.partition(".")
         old = data[section][name]
-        raw = raw.strip()
-        # Parsed only if it is a short plain number: no huge or nested literal reaches json.
-        value: Any = json.loads(raw) if _NUMBER.fullmatch(raw) else None
-        if isinstance(old, float) and isinstance(value, int):
-            value = float(value)
-        if type(value) is not type(old):
-            kind = "an integer" if isinstance(old, int) else "a number"
-            raise CommandError(f"{key} takes {kind}, got {raw[:40]!r}")
         least, most = IN_FLIGHT[key]
-        if not least <= value <= most:  # NaN fails too
-            raise CommandError(f"{key} must be between {least} and {most}, got {raw!r}")
-        data[section][name] = value
+        kind = "integer" if isinstance(old, int) else "number"
+        data[section][name] = setting_value(Setting(key, kind, least, most), raw)
         modules.update(readers(section))
     new = from_dict(MissionConfig, data)
     try:
@@ -200,6 +173,17 @@ class Operations:
     def event(self, step: int, kind: str, detail: str = "") -> None:
         """Send the ground a mission event (``mission-started``, ``mission-resumed``, ...)."""
         self.bridge.event(step, kind, detail)
+
+    def describe_link(self, step: int) -> None:
+        """Send the ground the contact plan and the commands this rover takes (after the
+        mission-started or -resumed event): the console shows the plan and composes commands
+        from the dictionary."""
+        self.bridge.event(step, CONTACT_PLAN_EVENT, json.dumps(
+            self.bridge.plan.describe(self.cfg.steps + self.cfg.contact.drain_steps),
+            separators=(",", ":")))
+        programs = tuple(planner_programs(self.cfg.planner))
+        self.bridge.event(step, DICTIONARY_EVENT,
+                          local_dictionary(programs, "rover").to_json())
 
     # --- the step boundary ----------------------------------------------------------------
 
@@ -322,6 +306,7 @@ class Operations:
                           f"{plural(status.collisions, 'collision')}")
         idle = 0
         t0 = time.monotonic()
+        self.bridge.report_queue = False
         while self.bridge.station_connected and not self.bridge.settled and \
                 idle < self.cfg.contact.drain_steps and not STOP.is_set():
             if self.bridge.plan.next_open(self.bridge.clock) is None:

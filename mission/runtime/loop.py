@@ -85,6 +85,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
             ops.event(0, "mission-started",
                              f"{cfg.scene.name}/{cfg.start}, {cfg.platform}, {cfg.condition}, "
                              f"{cfg.steps} steps")
+        if ops:
+            ops.describe_link(first)
         if resume:
             record.resumes.append({"step": first, "resume_s": time.perf_counter() - t_start})
             log.info("resumed at step %d, %.1f s after the start", first,
