@@ -146,7 +146,7 @@ def test_a_killed_mission_manager_resumes_and_ends_as_if_nothing_happened(tmp_pa
     events = [r["event"] for r in rows if r["kind"] == "event"]
     assert events[0] == "mission-started" and "mission-resumed" in events
     assert events[-1] == "mission-done" and p["link"]["undelivered"] == 0
-    assert not (out / "checkpoint.pickle").exists()  # the mission ended: nothing to resume
+    assert not (out / "checkpoint.sqlite").exists()  # the mission ended: nothing to resume
     again = run_cli("run", "--out", str(out), "--resume")
     assert again.returncode == 2 and "does not exist" in again.stderr, again.stderr
 
@@ -178,23 +178,84 @@ def test_a_checkpoint_that_names_code_is_refused_not_run(tmp_path: Path):
     class Exploit:
         def __reduce__(self):
             return (os.system, (f"touch {marker}",))
-    (tmp_path / CHECKPOINT).write_bytes(pickle.dumps(Exploit()))
-    with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
-        load(tmp_path)
-    assert not marker.exists()
-    # Pickle resolves dotted names: a module of ours and `subprocess.Popen` reach Popen.
+
     def short(text: str) -> bytes:
         return b"\x8c" + bytes([len(text)]) + text.encode()
+    # Pickle resolves dotted names: a module of ours and `subprocess.Popen` reach Popen.
     dotted = (b"\x80\x04" + short("mission.runtime.supervisor") + short("subprocess.Popen")
               + b"\x93"
               + short("touch") + short(str(marker)) + b"\x86\x85R.")
-    (tmp_path / CHECKPOINT).write_bytes(dotted)
+    good = pickle.dumps({}, protocol=pickle.HIGHEST_PROTOCOL)
+    for state, appended in [(pickle.dumps(Exploit()), good), (dotted, good),
+                            (b"\x80\x05garbage", good)]:
+        write_checkpoint(tmp_path, state, appended)
+        with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
+            load(tmp_path)
+        assert not marker.exists()
+    (tmp_path / CHECKPOINT).unlink()
+    (tmp_path / CHECKPOINT).write_bytes(b"SQLite format 3\x00 but not really")
     with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
         load(tmp_path)
-    assert not marker.exists()
-    (tmp_path / CHECKPOINT).write_bytes(b"\x80\x05garbage")
-    with pytest.raises(ConfigError, match="not a rovergate checkpoint"):
-        load(tmp_path)
+
+
+def write_checkpoint(out: Path, state: bytes, appended: bytes) -> None:
+    """A checkpoint file with these rows, as a forger would write it."""
+    import sqlite3
+
+    from mission.runtime.checkpoint import _SCHEMA, CHECKPOINT
+    (out / CHECKPOINT).unlink(missing_ok=True)
+    db = sqlite3.connect(out / CHECKPOINT)
+    db.executescript(_SCHEMA)
+    db.execute("INSERT INTO state VALUES (1, 1, ?)", (state,))
+    db.execute("INSERT INTO appended (step, blob) VALUES (1, ?)", (appended,))
+    db.commit()
+    db.close()
+
+
+def test_the_checkpoint_costs_the_same_at_every_step_and_reads_back_whole(tmp_path: Path):
+    """Append only: each step writes what it appended and the rest, which does not grow, so
+    the bytes a step costs at step 400 are those of step 40; loaded at any step, the state
+    equals the one saved."""
+    import dataclasses
+
+    import numpy as np
+
+    from mission.runtime.checkpoint import CheckpointWriter, LoopState, load
+    from mission.scoring.record import MissionRecord
+    from rovergate.config import MissionConfig
+    from rovergate.types import ExecutionReport, PlanPath, Pose, StepTiming
+
+    record = MissionRecord()
+    state = LoopState(0, record, 0, None, "obs", MissionConfig(), None, {"timings": []})
+    writer = CheckpointWriter(tmp_path)
+    costs = []
+    rng = np.random.default_rng(0)
+    for t in range(400):
+        record.coverage.append(float(rng.random()))
+        record.base_xy.append((float(t), 0.5))
+        record.paths.append(PlanPath(t, [Pose(rng.random(3), np.array([0, 0, 0, 1.0]))]))
+        record.executions.append(ExecutionReport(t, False, 0, 1.5, 0.4, 1.0))
+        record.add_stage("plan", 0.01 * t)
+        state.transport["timings"].append(StepTiming(t, "plan", 0.01, 0))
+        state = dataclasses.replace(state, step=t + 1)
+        writer.save(state)
+        costs.append(writer.bytes_written)
+        if t in (3, 250, 399):
+            back = load(tmp_path)
+            assert back.step == t + 1 and back.record.coverage == record.coverage
+            assert back.record.stage_s == record.stage_s and len(back.record.paths) == t + 1
+            assert np.array_equal(back.record.paths[-1].poses[0].position,
+                                  record.paths[-1].poses[0].position)
+            assert back.transport["timings"] == state.transport["timings"]
+    writer.close()
+    assert np.median(costs[380:]) <= 1.05 * np.median(costs[30:50]), (costs[30:50], costs[380:])
+    # Carried on after a resume: the new writer appends where the old one stopped.
+    resumed = load(tmp_path)
+    writer = CheckpointWriter(tmp_path, resumed)
+    resumed.record.coverage.append(0.5)
+    writer.save(dataclasses.replace(resumed, step=401))
+    writer.close()
+    assert load(tmp_path).record.coverage == [*record.coverage, 0.5]
 
 
 def test_the_launcher_forks_modules_that_report_their_exit_like_processes(tmp_path: Path):

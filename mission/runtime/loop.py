@@ -19,9 +19,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mission.runtime.checkpoint import LoopState
+from mission.runtime.checkpoint import CheckpointWriter, LoopState
 from mission.runtime.checkpoint import remove as remove_checkpoint
-from mission.runtime.checkpoint import save as save_checkpoint
 from mission.runtime.transport import InProcessTransport, Transport
 from mission.scoring.coverage import CoverageEvaluator
 from mission.scoring.evaluation import StepEvaluator, collision_class
@@ -64,6 +63,7 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
     collisions = resume.collisions if resume else 0
     first = resume.step if resume else 0
     ops = None
+    saver = CheckpointWriter(checkpoint, resume) if checkpoint is not None else None
     condition = resume.condition if resume else cfg.condition
     surface_xyz = None  # the last step's observed surface, for the report's top-down map
     try:
@@ -164,12 +164,12 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
                                              record.coverage[-1], collisions), base, surface)
             if on_step:
                 on_step(t, record.coverage[-1])
-            if t < cfg.steps and checkpoint is not None:
+            if t < cfg.steps and saver is not None:
                 record.wall_s = wall_before + time.perf_counter() - t_start
-                save_checkpoint(LoopState(
+                saver.save(LoopState(
                     t + 1, record, collisions, previous_base, condition,
                     transport.cfg, ops.snapshot() if ops else None,
-                    transport.snapshot()), checkpoint)
+                    transport.snapshot()))
         else:
             state = "done"
     finally:
@@ -181,6 +181,8 @@ def run_mission(cfg: MissionConfig, transport: Transport, on_step: OnStep | None
         try:
             transport.finish(final, failed=state == "failed")
         finally:
+            if saver is not None:
+                saver.close()
             if ops:
                 try:
                     if state != "failed":
