@@ -461,7 +461,7 @@ class MissionConfig:
     resume: bool = False
     """Carry on the process-set mission in --out whose mission manager was killed (or that
     failed), from its last step boundary, with the configuration it had then
-    (OUT/checkpoint.pickle, OUT/journal.sqlite; see mission/runtime/checkpoint.py). Give only --out
+    (OUT/checkpoint.sqlite, OUT/journal.sqlite; see mission/runtime/checkpoint.py). Give only --out
     (and --no-progress)."""
     ready_timeout_s: float = 120.0
     """How long to wait for every module's liveliness token."""
