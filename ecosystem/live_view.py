@@ -5,6 +5,15 @@
 Foxglove (Open connection, Foxglove WebSocket, that address) and import the layout
 ``docs/foxglove-layout.json``.
 
+The server speaks the Foxglove WebSocket protocol under its current subprotocol name,
+``foxglove.sdk.v1``, and only that: foxglove-sdk's handshake (0.30) compares the client's offer
+with that one constant, and ``start_server`` has no option to add its earlier name,
+``foxglove.websocket.v1``. The Foxglove app, Lichtblick 1.22 and later (which offer both) and
+foxglove-sdk's own clients connect; a client offering only ``foxglove.websocket.v1`` (older
+Foxglove Studio, Lichtblick before 1.22, the ``@foxglove/ws-protocol`` client unless given the
+new name) gets HTTP 400 "Missing expected sec-websocket-protocol header". The protocol is the
+same under both names, so such a client needs only to offer the new one.
+
 Channels:
 
 - every topic of the rover's network as it travels: its ROS 2 topic name

@@ -1,19 +1,21 @@
 """The flight recorder: every message the mission's modules publish, into a rosbag2 bag.
 
 The bag is ``OUT/bag/``: ``bag.mcap`` (MCAP storage; its chunks compressed with zstd if
-``--record-compression zstd``) and rosbag2's ``metadata.yaml``, written with rosbags'
-``rosbag2.Writer``. Each topic is a connection named as its ROS 2 topic (``/`` + its Zenoh key,
-e.g. ``/rover/map/occupancy/planner``), with the type's ``ros2msg`` definition as schema and
-the CDR payloads as they travelled (the process set) or as the process set would send them
-(``--in-process``). A message's log time is when the recorder received it (wall clock, ns);
-its header stamp is the planning step (:mod:`rovergate.messages`).
+``--record-compression zstd``) and rosbag2's ``metadata.yaml`` (version 9, ``ros_distro:
+jazzy``), written with rosbags' ``rosbag2.Writer`` and what rosbags leaves out of rosbag2's own
+writing added (:mod:`ecosystem.bag_writer`: CRCs, each channel's ``topic_type_hash``). Each
+topic is a connection named as its ROS 2 topic (``/`` + its Zenoh key, e.g.
+``/rover/map/occupancy/planner``), with the type's ``ros2msg`` definition as schema and its
+RIHS01 type hash, and the CDR payloads as they travelled (the process set) or as the process
+set would send them (``--in-process``). A message's log time is when the recorder received it
+(wall clock, ns); its header stamp is the planning step (:mod:`rovergate.messages`).
 
 The transport hands a payload over and goes on; a thread of the recorder writes it (the
 process set: the mission manager's own thread mostly waits) or sends it down a pipe to a
 writer process (in process: rosbags' copies would hold the Python lock the loop needs), at
 the lowest priority either way (:mod:`ecosystem.bag_writer`). Any MCAP reader opens the bag
-(``mcap`` with ``mcap-ros2-support``, Foxglove, ``ros2 bag`` with the MCAP plugin);
-``rovergate replay OUT/bag`` publishes it again over Zenoh.
+(``mcap`` with ``mcap-ros2-support``, Foxglove, ``ros2 bag`` of Jazzy or later with the MCAP
+plugin); ``rovergate replay OUT/bag`` publishes it again over Zenoh.
 
 The writer process closes the bag when its input ends, which it does when the mission's
 process dies in any way too. A process-set mission's manager killed outright leaves a bag

@@ -27,19 +27,23 @@ could reach the mission through. A ROS 2 node's command (a ``nav_msgs/msg/Path``
 planner) does not reach the rover by this path at all; commands go up only through the ground
 link's authenticated, allowlisted uplink (``rovergate ground``; docs/security.md).
 
-A publisher's GID is the first 16 bytes of the BLAKE2b hash of its liveliness token (rmw_zenoh
-takes XXH3-128 of the same string): stable for a token, distinct between publishers.
+A publisher's GID is rmw_zenoh's: the XXH3-128 hash of its liveliness token (:func:`gid_of`),
+so that a ROS 2 tool that matches a sample's GID against the graph's publishers finds ours.
+
+rovergate's own types (``rovergate_msgs/msg/...``) decode on the ROS 2 side once the interface
+package ``ros2/rovergate_msgs`` (copies of ``rovergate/msg/``) is built in its workspace.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import queue
 import struct
 import threading
 import time
+
+import xxhash
 
 from rovergate.errors import ConfigError
 from rovergate.graph import TOPICS
@@ -112,7 +116,17 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
 
 
 def gid_of(token: str) -> bytes:
-    return hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest()
+    """The 16-byte GID rmw_zenoh gives the entity whose liveliness token is ``token``.
+
+    rmw_zenoh (``liveliness_utils.cpp``, ``Entity::Entity``) hashes the token's characters with
+    XXH3-128 (seed 0, the default secret) into a ``{uint64 low64; uint64 high64}`` and copies
+    the two words into the GID with ``memcpy``: ``low64`` into bytes 0-7, ``high64`` into
+    bytes 8-15, each in the machine's byte order, which is little-endian on every platform
+    ROS 2 supports. So the GID is the 128-bit hash written little-endian, its lowest byte
+    first: ``XXH128_canonical``'s (big-endian, ``xxhash``'s ``hexdigest()``) 16 bytes
+    reversed. The token ``""`` (hash ``99aa06d3014798d8_6001c324468d497f``) gives
+    ``7f498d4624c30160_d8984701d306aa99``."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_BYTES, "little")
 
 
 class Ros2Bridge:

@@ -14,11 +14,14 @@ import numpy as np
 import pytest
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
+from websockets.exceptions import InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 
 from tests.conftest import recorded_mission
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+OLD_SUBPROTOCOL = "foxglove.websocket.v1"
+"""The same protocol's earlier name, all that older clients offer."""
 MESSAGE_DATA = 0x01
 PLANNER = "/rover/map/occupancy/planner"
 
@@ -28,10 +31,10 @@ class FoxgloveClient:
     names channel ids; each message comes as binary opcode 0x01, uint32 subscription id,
     uint64 log time (little-endian), then the payload."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, subprotocols: tuple[str, ...] = (SUBPROTOCOL,)) -> None:
         # The server listens before the mission logs its address, which the test awaited.
-        self.ws: ClientConnection = connect(url, subprotocols=[SUBPROTOCOL], max_size=None,
-                                            open_timeout=30)
+        self.ws: ClientConnection = connect(url, subprotocols=list(subprotocols),
+                                            max_size=None, open_timeout=30)
         self.info: dict = {}
         self.channels: dict[int, dict] = {}
         self._subs: dict[int, int] = {}
@@ -124,6 +127,31 @@ def test_a_foxglove_client_subscribes_to_the_planner_map_and_decodes_it(
         assert tf.transforms[0].child_frame_id in ("camera", "base_link")
         assert len(client.first("/rover/scene")) > 10_000  # the scene's triangles
     mission.kill()
+
+
+def test_the_live_view_answers_only_clients_that_offer_the_sdk_subprotocol():
+    """foxglove-sdk 0.30.3 accepts a client only if it offers ``foxglove.sdk.v1``: its handshake
+    compares with one constant (``rust/foxglove/src/websocket/handshake.rs``) and
+    ``start_server`` has no option for another. A client offering only
+    ``foxglove.websocket.v1`` (the @foxglove/ws-protocol client's default, older Foxglove
+    apps, Lichtblick before 1.22) gets HTTP 400 and no serverInfo; one offering both names, in
+    Lichtblick's order, is answered in ``foxglove.sdk.v1`` (the same protocol renamed)."""
+    from ecosystem.live_view import LiveView
+    view = LiveView(port=0)
+    url = f"ws://127.0.0.1:{view.port}"
+    try:
+        with pytest.raises(InvalidStatus) as refused:
+            connect(url, subprotocols=[OLD_SUBPROTOCOL], open_timeout=10)
+        response = refused.value.response
+        assert response.status_code == 400
+        assert bytes(response.body) == b"Missing expected sec-websocket-protocol header"
+        with FoxgloveClient(url, (OLD_SUBPROTOCOL, SUBPROTOCOL)) as client:
+            assert client.ws.subprotocol == SUBPROTOCOL
+            client.read_until(lambda: client.info and client.channel(PLANNER) or None, 30,
+                              "serverInfo and the planner map's channel")
+        assert client.info["capabilities"] == []
+    finally:
+        view.close()
 
 
 def test_the_committed_layout_is_the_generated_one():

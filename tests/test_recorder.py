@@ -4,15 +4,22 @@ modules publish into a rosbag2 MCAP bag that readers other than ours decode, and
 
 from __future__ import annotations
 
+import os
 import re
+import struct
 import subprocess
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
 from mcap.reader import make_reader
+from mcap.records import Chunk, DataEnd, Footer
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from ruamel.yaml import YAML
 
 from rovergate.config import SessionConfig
 from rovergate.graph import TOPICS
@@ -39,6 +46,81 @@ def _decoded(bag: Path, topics: list[str]) -> dict[str, list]:
             assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
             out[channel.topic].append(msg)
     return out
+
+
+def _jazzy_rihs01() -> dict[str, str]:
+    """Every recorded type's RIHS01 hash as a Jazzy node computes it, from rosbags' Jazzy
+    store and the .msg files (not from rovergate's own type store)."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    msg_dir = Path(__file__).resolve().parents[1] / "rovergate" / "msg"
+    types = {}
+    for path in sorted(msg_dir.glob("*.msg")):
+        types.update(get_types_from_msg(path.read_text(), f"rovergate_msgs/msg/{path.stem}"))
+    store.register(types)
+    return {t: store.hash_rihs01(t) for t in {TOPICS[t].msgtype for t in tapped_topics()}}
+
+
+def _check_as_rosbag2_writes_it(bag: Path) -> None:
+    """The bag's MCAP file as rosbag2's own writer makes it: every CRC there and right (the
+    mcap reader checks the chunks' and the data section's; the summary's, which it does not,
+    is computed here from the spec), each channel's ``topic_type_hash`` the RIHS01 hash of
+    its type, and Jazzy's ``ros_distro`` and metadata version."""
+    path = _mcap(bag)
+    with open(path, "rb") as f:  # CRCValidationError on a wrong data section CRC
+        records = list(StreamReader(f, validate_crcs=True, emit_chunks=True).records)
+    chunks = [r for r in records if isinstance(r, Chunk)]
+    (data_end,) = [r for r in records if isinstance(r, DataEnd)]
+    (footer,) = [r for r in records if isinstance(r, Footer)]
+    assert chunks and all(c.uncompressed_crc != 0 for c in chunks)  # 0: "not computed"
+    assert data_end.data_section_crc != 0 and footer.summary_crc != 0
+    for chunk in chunks:  # and on a wrong chunk CRC (of its records, decompressed)
+        breakup_chunk(chunk, validate_crc=True)
+    data = path.read_bytes()
+    footer_at = len(data) - 8 - (1 + 8 + 8 + 8 + 4)  # the footer, then the magic
+    assert data[footer_at] == 0x02
+    summary_start, summary_offset_start, summary_crc = struct.unpack_from(
+        "<QQI", data, footer_at + 9)
+    assert summary_start > 0 and summary_offset_start > summary_start
+    # MCAP: the summary CRC covers the summary through the footer's summary_offset_start.
+    assert zlib.crc32(data[summary_start:footer_at + 9 + 16]) == summary_crc
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert sum(1 for _ in reader.iter_messages()) == summary.statistics.message_count
+        (record,) = [m for m in reader.iter_metadata() if m.name == "rosbag2"]
+    hashes = _jazzy_rihs01()
+    for channel in summary.channels.values():
+        schema = summary.schemas[channel.schema_id]
+        assert channel.metadata["topic_type_hash"] == hashes[schema.name], channel.topic
+        assert channel.metadata["offered_qos_profiles"] == "[]"
+    info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert (info["version"], info["ros_distro"]) == (9, "jazzy")
+    assert {t["topic_metadata"]["name"]: t["topic_metadata"]["type_description_hash"]
+            for t in info["topics_with_message_count"]} == {
+        c.topic: c.metadata["topic_type_hash"] for c in summary.channels.values()}
+    embedded = YAML(typ="safe").load(record.metadata["serialized_metadata"])
+    assert (embedded["version"], embedded["ros_distro"]) == (9, "jazzy")
+
+
+def test_an_in_process_missions_bag_has_rosbag2s_crcs_type_hashes_and_distro(recorded: Path):
+    _check_as_rosbag2_writes_it(recorded / "bag")  # zstd chunks, the writer's own process
+
+
+def test_a_recorder_threads_bag_has_rosbag2s_crcs_type_hashes_and_distro(tmp_path: Path):
+    """Uncompressed, written on the recorder's thread, several chunks (rosbags closes one
+    past 1 MiB)."""
+    from ecosystem.recorder import FlightRecorder
+    from rovergate.messages import encode
+    from rovergate.types import MissionStatus
+    recorder = FlightRecorder(tmp_path / "bag", writer="thread")
+    for step in range(4):
+        recorder.put("status", encode("status", MissionStatus(step, 4, "running", "obs", 0.0,
+                                                              0)), step + 1)
+        recorder.put("surface", os.urandom(700_000), step + 1)  # bytes as they came
+    recorder.close()
+    _check_as_rosbag2_writes_it(tmp_path / "bag")
+    with open(_mcap(tmp_path / "bag"), "rb") as f:
+        assert sum(isinstance(r, Chunk) for r in StreamReader(f, emit_chunks=True).records) > 1
 
 
 def _cloud(msg) -> dict[str, np.ndarray]:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import xxhash
 import zenoh
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
@@ -55,6 +56,33 @@ def test_the_attachment_is_33_bytes_in_the_documents_order():
     assert ros2.parse_attachment(data) == (1, 1_700_000_000_123_456_789, gid)
     with pytest.raises(ValueError):
         ros2.attachment(1, 0, b"short")
+
+
+def _rmw_zenoh_gid(token: str) -> bytes:
+    """An entity's GID as rmw_zenoh's liveliness_utils.cpp makes it, from the xxhash package:
+    XXH3-128 of the token, its ``low64`` then its ``high64`` copied in (``memcpy``, so
+    little-endian on ROS 2's platforms)."""
+    h = xxhash.xxh3_128(token.encode()).intdigest()
+    return struct.pack("<QQ", h & 0xFFFF_FFFF_FFFF_FFFF, h >> 64)
+
+
+def test_a_publishers_gid_is_rmw_zenohs_xxh3_128_of_its_token():
+    # XXH3-128 of nothing is 99aa06d3014798d8_6001c324468d497f (xxHash's own test vector).
+    assert ros2.gid_of("") == bytes.fromhex("7f498d4624c30160d8984701d306aa99")
+    token = ros2.publisher_token(0, "8b20917502ee955ac4476e0266340d5c", 0, 1, "/rover",
+                                 ros2.NODE_NAME, "/rover/map/occupancy/planner",
+                                 "sensor_msgs/msg/PointCloud2")
+    assert ros2.gid_of(token) == _rmw_zenoh_gid(token)
+    assert len({ros2.gid_of(token), ros2.gid_of(token.replace("/1/MP", "/2/MP"))}) == 2
+
+
+def _planner_publisher_token(ros: zenoh.Session) -> str:
+    """The liveliness token of the planner map's publisher, as the ROS 2 graph sees it."""
+    tokens = [str(r.ok.key_expr) for r in ros.liveliness().get("@ros2_lv/0/**", timeout=10)
+              if r.ok]
+    (token,) = [t for t in tokens if t.split("/")[5] == "MP"
+                and t.split("/")[9] == "%rover%map%occupancy%planner"]
+    return token
 
 
 def _ros_decoder(msgtype: str):
@@ -130,6 +158,7 @@ def test_a_ros2_subscriber_receives_the_planner_map_through_a_router(launch, tmp
     assert publishers[0].split("/")[10:] == [
         "sensor_msgs::msg::dds_::PointCloud2_",
         ros2.type_hash("sensor_msgs/msg/PointCloud2"), ros2.QOS_KEEP_LAST_10]
+    assert {p[3] for p in parsed} == {_rmw_zenoh_gid(publishers[0])}
 
 
 @pytest.mark.e2e
@@ -171,6 +200,7 @@ def test_a_holding_bridge_delivers_every_message_put_faster_than_it_sends():
         try:
             # (the replay's own wait: it polls the match, as Zenoh sends no event to a Waiter)
             _await_subscriber([], [bridge.watched], 30, threading.Event())
+            token = _planner_publisher_token(ros)
             for i in range(n):
                 bridge.put("planner_map", i.to_bytes(4, "little"), 0)
         finally:
@@ -180,8 +210,10 @@ def test_a_holding_bridge_delivers_every_message_put_faster_than_it_sends():
         sub.undeclare()
     assert bridge.dropped == 0
     assert [int.from_bytes(p, "little") for _, p, _ in received.samples] == list(range(n))
-    assert [ros2.parse_attachment(a)[0] for _, _, a in received.samples] == \
-        list(range(1, n + 1))
+    attachments = [ros2.parse_attachment(a) for _, _, a in received.samples]
+    assert [seq for seq, _, _ in attachments] == list(range(1, n + 1))
+    # Every sample carries the GID rmw_zenoh gives the publisher of that token.
+    assert {gid for _, _, gid in attachments} == {_rmw_zenoh_gid(token)}
 
 
 def test_without_a_router_the_bridge_does_not_start():
