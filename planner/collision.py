@@ -23,6 +23,8 @@ the platform and blocks its way, as in the paper.
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 
 import fcl
 import numpy as np
@@ -56,6 +58,53 @@ this much under its clearance or over its top are obstacles)."""
 #: stands where the simulator's bumper stopped it, a few centimetres from the true surface,
 #: and the rock's samples may lie closer than that to its body.
 ESCAPE_SHRINK_M = 0.08
+
+
+class _BoxPool:
+    """FCL boxes of one edge, kept and moved instead of made anew each step.
+
+    python-fcl (0.7) never frees a ``CollisionObject`` it made: about 38 bytes each, and a
+    rover mission makes one per obstacle point per step (some 250,000 in 100 steps), which a
+    study worker running hundreds of missions kept for good. A model takes its boxes from
+    here and gives them back when it is collected (``weakref.finalize``); a box taken is
+    exclusively the taker's until then, and is moved (``setTranslation``) before use. The pool
+    is as large as the most boxes ever held at once."""
+
+    def __init__(self, edge: float) -> None:
+        self.edge = edge
+        self._geometry = fcl.Box(edge, edge, edge)
+        self._free: list[fcl.CollisionObject] = []
+        self._lock = threading.Lock()
+        self.made = 0
+
+    def take(self, points: np.ndarray) -> list[fcl.CollisionObject]:
+        """Boxes at ``points`` ((N, 3) float64)."""
+        with self._lock:
+            n = len(points)
+            reused = self._free[len(self._free) - n:] if n <= len(self._free) else self._free
+            self._free = self._free[:len(self._free) - len(reused)]
+            objects = list(reused)
+            for _ in range(n - len(objects)):
+                objects.append(fcl.CollisionObject(self._geometry))
+                self.made += 1
+        for o, p in zip(objects, points, strict=True):
+            o.setTranslation(p)
+        return objects
+
+    def give(self, objects: list[fcl.CollisionObject]) -> None:
+        with self._lock:
+            self._free.extend(objects)
+
+
+_POOLS: dict[float, _BoxPool] = {}
+
+
+def box_pool(edge: float) -> _BoxPool:
+    """The process's pool of boxes of ``edge`` metres."""
+    pool = _POOLS.get(edge)
+    if pool is None:
+        pool = _POOLS.setdefault(edge, _BoxPool(edge))
+    return pool
 
 
 class OccupancyCollisionModel:
@@ -182,9 +231,10 @@ class OccupancyCollisionModel:
     def _build_manager(self) -> fcl.DynamicAABBTreeCollisionManager:
         """The FCL broad phase over the obstacle points (built only when the body is checked:
         the flyer's sphere never is)."""
-        e = self._edge
-        self._objects = [fcl.CollisionObject(fcl.Box(e, e, e), fcl.Transform(p))
-                         for p in self.obstacle_points.astype(np.float64)]
+        pool = box_pool(self._edge)
+        self._objects = pool.take(self.obstacle_points.astype(np.float64))
+        # Back to the pool once this model (and with it its manager) is collected.
+        weakref.finalize(self, pool.give, self._objects)
         manager = fcl.DynamicAABBTreeCollisionManager()
         manager.registerObjects(self._objects)
         manager.setup()

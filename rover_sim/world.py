@@ -9,7 +9,13 @@ mast's (:class:`rovergate.config.SensorConfig`) and the rover's hazard cameras
 
 from __future__ import annotations
 
+import atexit
+import hashlib
+import os
+import shutil
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -23,13 +29,54 @@ NEAR_M = 0.05
 EYE_NUDGE_M = np.array([1.13e-4, 0.71e-4, 0.37e-4])
 
 
+_MESH_DIR: dict[int, Path] = {}
+
+
+def _mesh_dir() -> Path:
+    """This process's directory of scene meshes as OBJ files (removed when it exits; a
+    process forked from it makes its own)."""
+    pid = os.getpid()
+    if pid not in _MESH_DIR:
+        path = Path(tempfile.mkdtemp(prefix="rovergate-meshes-"))
+        _MESH_DIR[pid] = path
+
+        def remove() -> None:
+            if os.getpid() == pid:
+                shutil.rmtree(path, ignore_errors=True)
+        atexit.register(remove)
+    return _MESH_DIR[pid]
+
+
+def mesh_file(vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """An OBJ file of the mesh (vertices to 17 significant digits, so that pybullet reads
+    the same numbers it would from a list), written once per process and mesh."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    digest = hashlib.sha256(vertices.tobytes() + faces.tobytes()).hexdigest()[:24]
+    path = _mesh_dir() / f"{digest}.obj"
+    if not path.exists():
+        import trimesh
+        text = trimesh.exchange.obj.export_obj(
+            trimesh.Trimesh(vertices, faces, process=False), include_normals=False,
+            include_color=False, include_texture=False, digits=17, header=None)
+        tmp = path.with_suffix(f".tmp-{os.getpid()}")
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    return path
+
+
 def add_scene(client: int, scene: Scene) -> None:
-    """Put the scene's true geometry into a pybullet client, for rendering."""
+    """Put the scene's true geometry into a pybullet client, for rendering.
+
+    Each mesh goes in as a file, not as lists: pybullet 3.2 keeps every vertex and index list
+    it is given (and copies of an array) for as long as the process lives, some 4.5 MB a
+    mission of the suite's scenes, which a study worker running hundreds of missions kept for
+    good. Read from a file, the meshes render to the same depth, to the bit (a test checks)."""
     for mesh, rgba in scene.visual_meshes:
         if len(mesh.faces):
-            vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
-                                       indices=mesh.faces.ravel().tolist(), rgbaColor=rgba,
-                                       physicsClientId=client)
+            vis = pb.createVisualShape(pb.GEOM_MESH,
+                                       fileName=str(mesh_file(mesh.vertices, mesh.faces)),
+                                       rgbaColor=rgba, physicsClientId=client)
             pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=client)
 
 

@@ -342,3 +342,30 @@ def test_the_rover_grounds_box_minimum_is_scipys_minimum_filter():
         z = rng.normal(size=shape)
         z[rng.random(shape) < 0.4] = np.inf
         assert np.array_equal(_box_minimum(z, size), minimum_filter(z, size=size, mode="nearest"))
+
+
+def test_collision_boxes_are_reused_not_made_anew_each_step():
+    """python-fcl never frees a CollisionObject: the models of successive steps take their
+    boxes from one pool and give them back, so a mission makes only as many as one step
+    holds, and each model answers as one built from fresh boxes would."""
+    import gc
+
+    from planner.collision import box_pool
+    rng = np.random.default_rng(3)
+    pool = box_pool(0.15)
+    poses = [(float(x), float(y), float(a)) for x, y, a in rng.uniform(-6, 6, (40, 3))]
+    first = None
+    for step in range(12):
+        rocks = np.vstack([box_points(*rng.uniform(-6, 6, 2), 0.0, 0.6) for _ in range(6)])
+        m = model(flat_ground(rocks))
+        answers = [m.is_free(*p) for p in poses]
+        if step == 2:
+            first = pool.made
+        # Built now from its own points, the answers are the same.
+        again = model(flat_ground(rocks))
+        assert [again.is_free(*p) for p in poses] == answers
+        assert any(answers) and not all(answers)
+        del m, again
+        gc.collect()
+    # After the first few steps (the pool's high-water mark), nothing more is made.
+    assert pool.made <= first * 1.5, (first, pool.made)

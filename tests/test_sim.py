@@ -72,3 +72,50 @@ def test_executing_a_path_moves_the_rover(sim):
     assert not report.collided and report.path_length_m == pytest.approx(1.0)
     assert sim.state[0] == pytest.approx(x + 1.0)
     assert report.min_clearance_m > 0
+
+
+def test_the_scene_renders_the_same_from_files_and_worlds_do_not_accumulate():
+    """pybullet keeps every vertex list it is given; the scene goes in as OBJ files instead,
+    and renders to the same depth, to the bit, as from lists. Worlds made and closed one
+    after another (a study worker's missions) then keep no memory."""
+    from rover_sim.bullet import pb
+    from rover_sim.world import add_scene
+
+    scene = build_arch_field()
+
+    def from_lists(client, scene):
+        for mesh, rgba in scene.visual_meshes:
+            if len(mesh.faces):
+                vis = pb.createVisualShape(pb.GEOM_MESH, vertices=mesh.vertices.tolist(),
+                                           indices=mesh.faces.ravel().tolist(),
+                                           rgbaColor=rgba, physicsClientId=client)
+                pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis,
+                                   physicsClientId=client)
+
+    def depths(load):
+        c = pb.connect(pb.DIRECT)
+        load(c, scene)
+        rng = np.random.default_rng(1)
+        out = []
+        for _ in range(6):
+            eye = [rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(1, 4)]
+            view = pb.computeViewMatrix(eye, [eye[0] + 3, eye[1] - 1, 0.0], [0, 0, 1],
+                                        physicsClientId=c)
+            proj = pb.computeProjectionMatrixFOV(60, 4 / 3, 0.05, 30, physicsClientId=c)
+            out.append(np.asarray(pb.getCameraImage(
+                160, 120, view, proj, renderer=pb.ER_TINY_RENDERER, physicsClientId=c)[3]))
+        pb.disconnect(c)
+        return np.stack(out)
+
+    assert np.array_equal(depths(add_scene), depths(from_lists))
+
+    import gc
+    sizes = []
+    for _ in range(12):
+        c = pb.connect(pb.DIRECT)
+        add_scene(c, scene)
+        pb.disconnect(c)
+        gc.collect()
+        sizes.append(sum(isinstance(o, list) for o in gc.get_objects()))
+    # From lists pybullet kept about 11,700 of them a world (arch_field's vertices).
+    assert sizes[-1] - sizes[3] < 100, sizes
