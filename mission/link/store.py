@@ -18,6 +18,7 @@ the transmitter's reports, advanced at the wall-clock rate those samples show.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import threading
@@ -124,23 +125,15 @@ class GroundStore:
 
     def _event(self, row: dict[str, Any]) -> None:
         kind, detail = row["event"], row.get("detail", "")
-        if kind == CONTACT_PLAN_EVENT:
-            try:
-                self.plan = json.loads(detail)
-            except ValueError:
-                return
-            return
-        if kind == DICTIONARY_EVENT:
-            try:
-                self.dictionary = Dictionary.from_json(detail, "rover")
-            except (ValueError, KeyError, TypeError):
-                return
-            return
-        if kind == ONBOARD_QUEUE_EVENT:
-            try:
-                self.onboard = {**json.loads(detail), "received_wall": row["received_wall"]}
-            except ValueError:
-                return
+        if kind in LINK_EVENTS:  # drawn in their own panels; a malformed one is skipped
+            with contextlib.suppress(ValueError, KeyError, TypeError):
+                if kind == CONTACT_PLAN_EVENT:
+                    self.plan = json.loads(detail)
+                elif kind == DICTIONARY_EVENT:
+                    self.dictionary = Dictionary.from_json(detail, "rover")
+                else:
+                    self.onboard = {**json.loads(detail),
+                                    "received_wall": row["received_wall"]}
             return
         if kind == "paused":
             self.paused = True
