@@ -16,6 +16,7 @@ checks that it is this one). In Foxglove: Layouts, Import from file.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import foxglove.layouts as fl
 
@@ -85,11 +86,13 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
 
     from rovergate.graph import TOPICS
     from rovergate.messages import decode
+    from rovergate.streams import StreamDecoder
     keys = Keys(namespace)
     wanted = {"/" + keys.key(t): t for t in ("planner_map", "surface", "base_pose", "depth",
                                               "status", "traversability", "hazcam_front",
                                               "hazcam_rear")}
-    last: dict[str, object] = {}
+    last: dict[str, Any] = {}
+    decoders = {t: StreamDecoder(t) for t in ("planner_map", "surface")}
     coverage: list[tuple[int, float]] = []
     track: list[np.ndarray] = []
     with Reader(bag) as reader:
@@ -103,11 +106,14 @@ def picture(bag: Path, out: Path, namespace: str = "rover") -> None:
                 last["status"] = status
             elif topic == "base_pose":
                 track.append(decode("base_pose", bytes(data))[1].position[:2])
+            elif topic in decoders:  # an incremental map: every message, in order
+                for whole_step, whole in decoders[topic].offer(decode(topic, bytes(data))[1]):
+                    last[topic] = (whole_step, whole)
             else:
                 last[topic] = bytes(data)
-    map_step, planner_map = decode("planner_map", last["planner_map"])
+    map_step, planner_map = last["planner_map"]
     planner = planner_map.points
-    surface = decode("surface", last["surface"])[1]
+    surface = last["surface"][1]
     step, depth = decode("depth", last["depth"])
     status = last["status"]
     hazcams = {end: decode(f"hazcam_{end}", last[f"hazcam_{end}"])

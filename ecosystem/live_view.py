@@ -18,8 +18,10 @@ Channels:
 
 - every topic of the rover's network as it travels: its ROS 2 topic name
   (``/rover/map/occupancy/planner``), schema encoding ``ros2msg`` (the type's definition),
-  message encoding ``cdr``, the bytes unchanged: depth image, intrinsics, poses, surface,
-  prediction, planner map (the layout colours it by its ``source`` field), path, status;
+  message encoding ``cdr``, the bytes unchanged: depth image, intrinsics, poses, path,
+  status; the surface, the prediction and the planner map (the layout colours it by its
+  ``source`` field) whole, as ``sensor_msgs/msg/PointCloud2``, though they travel as what
+  changed (:class:`rovergate.streams.Wholes`; a viewer sees them from the next keyframe);
 - ``/tf``, a ``tf2_msgs/msg/TFMessage`` per pose: ``map`` to ``camera`` (the depth camera's
   optical frame, the frame of the image and intrinsics), ``map`` to ``base_link`` (the
   platform's base) and ``map`` to ``hazcam_front_optical`` and ``hazcam_rear_optical`` (the
@@ -41,9 +43,9 @@ from typing import Protocol
 import numpy as np
 
 from rovergate.config import HazcamConfig
-from rovergate.graph import TOPICS
 from rovergate.keys import Keys
 from rovergate.messages import TYPESTORE
+from rovergate.streams import Wholes, shown_type
 from rovergate.taps import tapped_topics
 
 
@@ -93,7 +95,7 @@ class LiveView:
         self._context = foxglove.Context()
         keys = Keys(namespace)
         self.channels = {
-            t: foxglove.Channel("/" + keys.key(t), schema=ros2msg_schema(TOPICS[t].msgtype),
+            t: foxglove.Channel("/" + keys.key(t), schema=ros2msg_schema(shown_type(t)),
                                 message_encoding="cdr", context=self._context)
             for t in tapped_topics()}
         self._tf = foxglove.Channel(TF_TOPIC, schema=ros2msg_schema(TF_TYPE),
@@ -101,6 +103,7 @@ class LiveView:
         self._scene_channel = SceneUpdateChannel(scene_topic(namespace), context=self._context)
         self._scene = _scene_update(scene) if scene is not None else None
         self._lock = threading.Lock()
+        self._wholes = Wholes()
         self._watched = threading.Event()
         view = self
 
@@ -128,7 +131,8 @@ class LiveView:
         if channel is None:
             return
         data = bytes(payload)
-        channel.log(data, log_time=time_ns)
+        for shown in self._wholes.shown(topic, data):  # an incremental map: made whole
+            channel.log(shown, log_time=time_ns)
         if topic in FRAMES:
             self._tf.log(_transform(data, FRAMES[topic]), log_time=time_ns)
         if topic == "base_pose":  # the hazard cameras ride on the base (their mounting)

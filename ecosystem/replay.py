@@ -138,6 +138,10 @@ def replay(cfg: ReplayConfig, taps=None) -> ReplayStats:
         # Which graph topic each connection is (the live view names channels by it).
         by_suffix = {t.suffix: name for name, t in TOPICS.items()}
         names = {c.id: by_suffix.get(key_of(c.topic).split("/", 1)[-1]) for c in connections}
+        # ...where its type is the topic's (a bag of an older version sent the maps whole,
+        # as PointCloud2: Zenoh subscribers get them, the live view and ROS 2 do not).
+        names = {i: n if n and TOPICS[n].msgtype == c.msgtype else None
+                 for (i, n), c in zip(names.items(), connections, strict=True)}
         publishers = {
             c.id: session.declare_publisher(
                 key_of(c.topic, cfg.session.namespace),

@@ -12,7 +12,9 @@ version with the 33-byte attachment: Jazzy 0.2.4 and later, Rolling 0.6 and late
   definition (``std_msgs/msg/String`` gives the design document's
   ``RIHS01_df668c74…``);
 - **payloads**: the CDR bytes as the mission sent them (the same 4-byte encapsulation header
-  rmw_zenoh writes);
+  rmw_zenoh writes), but the incremental maps (the surface, the prediction, the planner map),
+  which are made whole again and published as ``sensor_msgs/msg/PointCloud2``
+  (:class:`rovergate.streams.Wholes`: from the first keyframe the bridge sees);
 - **an attachment on every sample**: int64 sequence number (from 1, per publisher), int64 source
   timestamp (ns since the epoch), the GID's length (one byte, 16) and the 16-byte publisher
   GID, little-endian: 33 bytes;
@@ -46,9 +48,9 @@ import time
 import xxhash
 
 from rovergate.errors import ConfigError
-from rovergate.graph import TOPICS
 from rovergate.keys import Keys
 from rovergate.messages import TYPESTORE
+from rovergate.streams import Wholes, shown_type
 from rovergate.taps import tapped_topics
 
 log = logging.getLogger("rovergate.ros2")
@@ -166,8 +168,9 @@ class Ros2Bridge:
         self._queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue(QUEUE_MESSAGES)
         self.dropped = 0
         self._hold = hold
+        self._wholes = Wholes()
         for entity, topic in enumerate(tapped_topics(), start=1):
-            name, msgtype = "/" + keys.key(topic), TOPICS[topic].msgtype
+            name, msgtype = "/" + keys.key(topic), shown_type(topic)
             token = publisher_token(domain, self.zid, 0, entity, self.node_namespace,
                                     NODE_NAME, name, msgtype)
             self._publishers[topic] = (
@@ -206,13 +209,14 @@ class Ros2Bridge:
         while (item := self._queue.get()) is not None:
             topic, payload = item
             publisher, gid = self._publishers[topic]
-            self._sequence[topic] += 1  # per publisher, from 1, in the order sent
-            try:
-                publisher.put(bytes(payload), attachment=attachment(self._sequence[topic],
-                                                                    time.time_ns(), gid))
-            except Exception as exc:  # the session closed under us: stop sending
-                log.error("the ROS 2 bridge stopped: %s", exc)
-                return
+            for data in self._wholes.shown(topic, bytes(payload)):  # maps made whole
+                self._sequence[topic] += 1  # per publisher, from 1, in the order sent
+                try:
+                    publisher.put(data, attachment=attachment(self._sequence[topic],
+                                                              time.time_ns(), gid))
+                except Exception as exc:  # the session closed under us: stop sending
+                    log.error("the ROS 2 bridge stopped: %s", exc)
+                    return
 
     def watched(self) -> bool:
         """True once a ROS 2 subscriber matches one of the bridge's publishers."""

@@ -3,7 +3,8 @@
 It uses only zenoh, rosbags and numpy, and keeps the planner contract of
 docs/writing-a-planner.md:
 
-- subscribe to ``<ns>/map/occupancy/planner`` (sensor_msgs/PointCloud2) and
+- subscribe to ``<ns>/map/occupancy/planner`` (rovergate_msgs/CloudUpdate: the map as what
+  changed since the step before, made whole by ``examples/cloud_updates.py``) and
   ``<ns>/sensor/base_pose`` (geometry_msgs/PoseStamped);
 - for each step t (``header.stamp.sec``) once both have come, publish a nav_msgs/Path of base
   poses on ``<ns>/plan/path``, stamped t, encoded ``application/cdr`` with the type name as
@@ -32,9 +33,11 @@ import threading
 
 import numpy as np
 import zenoh
+from cloud_updates import CLOUD_UPDATE, MapStream, register
 from rosbags.typesys import Stores, get_typestore
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
+register(STORE)
 T = STORE.types
 PATH_ENCODING = zenoh.Encoding.APPLICATION_CDR.with_schema("nav_msgs/msg/Path")
 CELL_M = 0.5
@@ -44,15 +47,6 @@ VISITED_M = 1.5
 HALF_WIDTH_M = 0.35  # the rover is 0.7 m wide
 BLIND_M = 2.5  # the mast camera (1.6 m up, 15 degrees down, 45 degrees field) first sees
 #               the ground about 2.1 m ahead
-
-
-def cloud_xyz(msg) -> np.ndarray:
-    """(N, 3) float32 x, y, z of a PointCloud2 (any point layout)."""
-    offsets = {f.name: f.offset for f in msg.fields}
-    n = msg.width * msg.height
-    raw = np.frombuffer(msg.data.tobytes(), dtype=np.uint8).reshape(n, msg.point_step)
-    cols = [raw[:, offsets[k]:offsets[k] + 4].copy().view("<f4")[:, 0] for k in "xyz"]
-    return np.stack(cols, axis=1)
 
 
 def yaw_of(q) -> float:
@@ -203,10 +197,13 @@ def main() -> None:
                 maps.pop(old, None)
                 poses.pop(old, None)
 
+    stream = MapStream()  # the map travels as what changed since the step before
+
     def on_map(sample):
-        msg = STORE.deserialize_cdr(sample.payload.to_bytes(), "sensor_msgs/msg/PointCloud2")
+        msg = STORE.deserialize_cdr(sample.payload.to_bytes(), CLOUD_UPDATE)
         with lock:
-            maps[msg.header.stamp.sec] = cloud_xyz(msg)
+            for step in stream.offer(msg):
+                maps[step] = stream.xyz()
         try_plan()
 
     def on_pose(sample):

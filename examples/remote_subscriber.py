@@ -4,7 +4,9 @@
 
 (start the mission with `rovergate run --listen tcp/0.0.0.0:7447` so that it accepts the
 connection). Prints one line per planner-facing map and observed surface it decodes, and
-exits after --count maps.
+exits after --count maps. Both maps travel as what changed since the step before
+(examples/cloud_updates.py makes them whole), so the first line comes with the first
+keyframe, within 25 steps.
 """
 
 from __future__ import annotations
@@ -16,22 +18,12 @@ import time
 
 import numpy as np
 import zenoh
+from cloud_updates import CLOUD_UPDATE, MapStream, register
 from rosbags.typesys import Stores, get_typestore
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
+register(STORE)
 SOURCES = ("observed", "predicted", "oracle-fn", "truth")
-
-
-def fields(msg) -> dict[str, np.ndarray]:
-    """The PointCloud2's fields as arrays, read from its own layout."""
-    kinds = {2: "u1", 4: "<u2", 7: "<f4"}
-    n = msg.width * msg.height
-    raw = np.frombuffer(msg.data.tobytes(), dtype=np.uint8).reshape(n, msg.point_step)
-    out = {}
-    for f in msg.fields:
-        dt = np.dtype(kinds[f.datatype])
-        out[f.name] = raw[:, f.offset:f.offset + dt.itemsize].copy().view(dt)[:, 0]
-    return out
 
 
 def main() -> None:
@@ -57,23 +49,30 @@ def main() -> None:
     maps = 0
     done = threading.Event()
 
+    # Both maps travel as what changed since the step before, whole every few steps: until
+    # the first whole one (a keyframe) comes, there is nothing to show.
+    planner_map, surface = MapStream(), MapStream()
+
     def on_map(sample):
         nonlocal maps
-        msg = STORE.deserialize_cdr(sample.payload.to_bytes(), "sensor_msgs/msg/PointCloud2")
-        f = fields(msg)
-        counts = np.bincount(f["source"], minlength=len(SOURCES))
-        parts = ", ".join(f"{c} {s}" for s, c in zip(SOURCES, counts, strict=True) if c)
-        print(f"planner map step {msg.header.stamp.sec}: {len(f['x'])} points ({parts}); "
-              f"encoding {sample.encoding}", flush=True)
-        maps += 1
-        if maps >= args.count:
-            done.set()
+        msg = STORE.deserialize_cdr(sample.payload.to_bytes(), CLOUD_UPDATE)
+        for step in planner_map.offer(msg):
+            counts = np.bincount(planner_map.field("source"), minlength=len(SOURCES))
+            parts = ", ".join(f"{c} {s}" for s, c in zip(SOURCES, counts, strict=True) if c)
+            sent = ("whole" if msg.base_step < 0 else
+                    f"{len(msg.put_at)} new, {len(msg.patch_at)} patched")
+            print(f"planner map step {step}: {len(planner_map.rows)} points ({parts}; this "
+                  f"message {sent}); encoding {sample.encoding}", flush=True)
+            maps += 1
+            if maps >= args.count:
+                done.set()
 
     def on_surface(sample):
-        msg = STORE.deserialize_cdr(sample.payload.to_bytes(), "sensor_msgs/msg/PointCloud2")
-        f = fields(msg)
-        print(f"surface step {msg.header.stamp.sec}: {len(f['x'])} points, z "
-              f"{f['z'].min():.2f}..{f['z'].max():.2f} m", flush=True)
+        msg = STORE.deserialize_cdr(sample.payload.to_bytes(), CLOUD_UPDATE)
+        for step in surface.offer(msg):
+            z = surface.field("z")
+            print(f"surface step {step}: {len(z)} points, z {z.min():.2f}..{z.max():.2f} m",
+                  flush=True)
 
     ns = args.namespace
     subs = [session.declare_subscriber(f"{ns}/map/occupancy/planner", on_map),

@@ -38,6 +38,10 @@ class SessionConfig:
     wait_for_peers: int = 0
     """Before declaring itself ready, wait until this many peers are linked (`rovergate run`
     starts its modules as clients with 1: linked to the mission's session)."""
+    keyframe_every: int = 25
+    """The incremental maps (S_t, the prediction, the planner map) are sent whole every this
+    many steps and as what changed in between (rovergate/streams.py): a subscriber that joins
+    late waits at most this many steps for the whole map."""
 
 
 @dataclass
@@ -543,7 +547,8 @@ def check_values(cfg: MissionConfig) -> None:
             ("--hazcam.width-px", cfg.hazcam.width_px, 8),
             ("--hazcam.height-px", cfg.hazcam.height_px, 8),
             ("--traverse.backout-steps", cfg.traverse.backout_steps, 0),
-            ("--eval.n-samples", cfg.eval.n_samples, 1))
+            ("--eval.n-samples", cfg.eval.n_samples, 1),
+            ("--session.keyframe-every", cfg.session.keyframe_every, 1))
     for flag, count, least in counts:
         if count < least:
             raise ConfigError(f"{flag} must be at least {least}, got {count}")

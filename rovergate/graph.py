@@ -40,7 +40,14 @@ class Topic:
     doc: str
     network: Network = "rover"
     kind: Kind = "topic"
+    incremental: bool = False
+    """A map that travels as what changed since the step before (:mod:`rovergate.streams`):
+    its ``msgtype`` is ``rovergate_msgs/msg/CloudUpdate``, whose ``points`` are the cloud's."""
 
+
+#: The type of the incremental maps: a keyframe or the change since the step before, whose
+#: ``points`` is a ``sensor_msgs/msg/PointCloud2`` (:mod:`rovergate.streams`).
+CLOUD_UPDATE = "rovergate_msgs/msg/CloudUpdate"
 
 #: Every topic of the system. docs/architecture.md's topic table lists the same entries.
 TOPICS: dict[str, Topic] = {
@@ -67,17 +74,18 @@ TOPICS: dict[str, Topic] = {
                                    "sensor_msgs/msg/CameraInfo",
                                    f"the {end} hazard camera's intrinsics")
        for end in ("front", "rear")},
-    "surface": Topic("map/surface", "sensor_msgs/msg/PointCloud2",
-                     "accumulated observed surface S_t: float32 `x, y, z`; uint16 `views` "
-                     "(frames that saw the voxel)"),
-    "predicted": Topic("map/occupancy/predicted", "sensor_msgs/msg/PointCloud2",
-                       "learned prediction O_hat_t: voxel centres (0.4 m) at probability >= 0.5 "
-                       "with no depth return in them yet; float32 `x, y, z, probability`. Empty "
-                       "in conditions that do not use it"),
-    "planner_map": Topic("map/occupancy/planner", "sensor_msgs/msg/PointCloud2",
-                         "planner-facing occupancy: float32 `x, y, z`; uint8 `source`; "
-                         "uint16 `views`; uint8 `channels` (1: gain, 2: collision checking; "
-                         "3 but under gated-split)"),
+    "surface": Topic("map/surface", CLOUD_UPDATE,
+                     "accumulated observed surface S_t, incremental: float32 `x, y, z`; uint16 "
+                     "`views` (frames that saw the voxel)", incremental=True),
+    "predicted": Topic("map/occupancy/predicted", CLOUD_UPDATE,
+                       "learned prediction O_hat_t, incremental: voxel centres (0.4 m) at "
+                       "probability >= 0.5 with no depth return in them yet; float32 `x, y, z, "
+                       "probability`. Empty in conditions that do not use it",
+                       incremental=True),
+    "planner_map": Topic("map/occupancy/planner", CLOUD_UPDATE,
+                         "planner-facing occupancy, incremental: float32 `x, y, z`; uint8 "
+                         "`source`; uint16 `views`; uint8 `channels` (1: gain, 2: collision "
+                         "checking; 3 but under gated-split)", incremental=True),
     "path": Topic("plan/path", "nav_msgs/msg/Path",
                   "rover base poses of the next motion; the first is the current pose"),
     "rejected": Topic("plan/rejected", "nav_msgs/msg/Path",

@@ -23,13 +23,14 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from rovergate.graph import TOPICS
+from rovergate.graph import CLOUD_UPDATE, TOPICS
 from rovergate.types import (
     PLANNER_DTYPE,
     PREDICTED_DTYPE,
     SURFACE_DTYPE,
     XYZ_DTYPE,
     CameraIntrinsics,
+    CloudUpdate,
     CommandAck,
     DownlinkAck,
     ExecutionReport,
@@ -46,7 +47,7 @@ from rovergate.types import (
     TraverseReport,
 )
 
-PROJECT_TYPES = ("MissionStatus", "ExecutionReport", "StepTiming", "TelemetryFrame",
+PROJECT_TYPES = ("CloudUpdate", "MissionStatus", "ExecutionReport", "StepTiming", "TelemetryFrame",
                  "DownlinkAck", "GroundCommand", "CommandAck", "MissionEvent",
                  "TraverseReport")
 
@@ -240,6 +241,11 @@ def cloud_to_ros(step: int, cloud: np.ndarray) -> RosMsg:
         data=np.ascontiguousarray(cloud).view(np.uint8).ravel(), is_dense=True)
 
 
+def cloud_cdr(step: int, cloud: np.ndarray) -> bytes:
+    """A cloud as the CDR bytes of a sensor_msgs/PointCloud2."""
+    return bytes(TYPESTORE.serialize_cdr(cloud_to_ros(step, cloud), "sensor_msgs/msg/PointCloud2"))
+
+
 def cloud_from_ros(msg: RosMsg, expected: np.dtype) -> tuple[int, np.ndarray]:
     """sensor_msgs/PointCloud2 -> structured array of ``expected`` dtype, checked field by field."""
     if int(msg.width) * int(msg.height) > MAX_POINTS:
@@ -421,9 +427,56 @@ def _with_step(from_ros: Callable[[Any], Any]) -> Callable[[Any], tuple[int, Any
     return decode_with_step
 
 
-def _planner_map_from_ros(msg: RosMsg) -> PlannerMap:
-    step, points = cloud_from_ros(msg, PLANNER_DTYPE)
-    return PlannerMap(step, points)
+def update_to_ros(update: CloudUpdate | tuple[int, np.ndarray] | PlannerMap) -> RosMsg:
+    """A :class:`rovergate.types.CloudUpdate` -> rovergate_msgs/CloudUpdate; a whole value
+    (``(step, cloud)`` or a PlannerMap) is sent as a keyframe."""
+    if not isinstance(update, CloudUpdate):
+        step, cloud = ((update.step, update.points) if isinstance(update, PlannerMap)
+                       else (int(update[0]), update[1]))
+        update = CloudUpdate(step, -1, len(cloud), cloud)
+    u32 = np.uint32
+    return _T[CLOUD_UPDATE](
+        header=_header(update.step), base_step=int(update.base_step), size=int(update.size),
+        copy_to=np.asarray(update.copy_to, dtype=u32),
+        copy_from=np.asarray(update.copy_from, dtype=u32),
+        copy_count=np.asarray(update.copy_count, dtype=u32),
+        put_at=np.asarray(update.put_at, dtype=u32),
+        points=cloud_to_ros(update.step, update.points),
+        patch_at=np.asarray(update.patch_at, dtype=u32),
+        patches=cloud_to_ros(update.step, _patches(update)))
+
+
+def patch_dtype(dtype: np.dtype) -> np.dtype:
+    """The fields of a cloud's dtype other than x, y, z (what a CloudUpdate patches)."""
+    names = [n for n in dtype.names or () if n not in ("x", "y", "z")]
+    return np.dtype([(n, dtype.fields[n][0]) for n in names])  # type: ignore[index]
+
+
+def _patches(update: CloudUpdate) -> np.ndarray:
+    if update.patches is not None:
+        return update.patches
+    return np.empty(0, dtype=patch_dtype(update.points.dtype))
+
+
+def _update_from_ros(dtype: np.dtype) -> Callable[[RosMsg], tuple[int, CloudUpdate]]:
+    def from_ros(msg: RosMsg) -> tuple[int, CloudUpdate]:
+        step = _step(msg.header)
+        if int(msg.size) > MAX_POINTS:
+            raise MessageError(f"cloud update of {int(msg.size)} points is over the limit of "
+                               f"{MAX_POINTS}")
+        _, points = cloud_from_ros(msg.points, dtype)
+        base = int(msg.base_step)
+        if base >= step:
+            raise MessageError(f"cloud update of step {step} is made from step {base}, not an "
+                               "earlier one")
+
+        def table(a: Any) -> np.ndarray:
+            return np.asarray(a, dtype=np.uint32)
+        _, patches = cloud_from_ros(msg.patches, patch_dtype(dtype))
+        return step, CloudUpdate(step, base, int(msg.size), points, table(msg.put_at),
+                                 table(msg.copy_to), table(msg.copy_from),
+                                 table(msg.copy_count), table(msg.patch_at), patches)
+    return from_ros
 
 
 def _in_frame(to_ros: Callable[..., RosMsg], frame_id: str) -> Callable[[Any], RosMsg]:
@@ -448,9 +501,10 @@ _CODECS: dict[str, tuple[Callable[[Any], Any], Callable[[Any], tuple[int, Any]]]
     "pose": (lambda v: pose_to_ros(*v), pose_from_ros),
     "pose_cov": (lambda v: pose_cov_to_ros(*v), pose_cov_from_ros),
     "base_pose": (lambda v: pose_to_ros(*v), pose_from_ros),
-    "surface": _cloud_codec(SURFACE_DTYPE),
-    "predicted": _cloud_codec(PREDICTED_DTYPE),
-    "planner_map": (lambda v: cloud_to_ros(v.step, v.points), _with_step(_planner_map_from_ros)),
+    # The incremental maps (rovergate.streams): a CloudUpdate, or a whole value as a keyframe.
+    "surface": (update_to_ros, _update_from_ros(SURFACE_DTYPE)),
+    "predicted": (update_to_ros, _update_from_ros(PREDICTED_DTYPE)),
+    "planner_map": (update_to_ros, _update_from_ros(PLANNER_DTYPE)),
     "path": (path_to_ros, _with_step(path_from_ros)),
     "rejected": (path_to_ros, _with_step(path_from_ros)),
     "execution": (execution_to_ros, _with_step(execution_from_ros)),

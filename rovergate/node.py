@@ -33,6 +33,7 @@ from rovergate.logs import log_drop
 from rovergate.messages import MessageError, decode, encode, prepare
 from rovergate.module import STOP, ModuleLogic, StepOutput
 from rovergate.session import open_session
+from rovergate.streams import INCREMENTAL, StreamDecoder, StreamEncoder
 from rovergate.types import StepTiming
 
 _MISSION_LOST = "__mission_lost__"
@@ -156,6 +157,11 @@ class ModuleNode:
             self.keys.alive("mission"), self._on_mission_liveliness, history=True)
         self._queryables: list[zenoh.Queryable[None]] = []
         self._first_step = 0
+        # The incremental maps (rovergate.streams): a fresh encoder's first message is a
+        # keyframe, so a restarted module's readers take it up at once.
+        self._encoders = {t: StreamEncoder(t, session_cfg.keyframe_every)
+                          for t in outputs if t in INCREMENTAL}
+        self._decoders = {t: StreamDecoder(t) for t in watched if t in INCREMENTAL}
 
     # --- receiving ------------------------------------------------------------------------
 
@@ -178,6 +184,8 @@ class ModuleNode:
 
     def publish(self, topic: str, value: Any) -> None:
         """Encode ``value`` as the topic's ROS 2 type and put it."""
+        if topic in self._encoders:
+            value = self._encoders[topic].encode(value)
         self._publishers[topic].put(encode(topic, value))
 
     def serve(self, topic: str, make_value: Callable[[], Any]) -> None:
@@ -278,8 +286,20 @@ class ModuleNode:
         # Inputs of this step and any later one already sent (the module redoes the last
         # step it finished, so the next step's inputs may be out too).
         for name, inp in self.inputs.items():
-            self._buffers[name].update(
-                self.fetch_journal(inp.topic, max(0, step - inp.lag), 2**31 - 1))
+            first = max(0, step - inp.lag)
+            if inp.topic in self._decoders and first > 0:
+                # An incremental map: also the step before, whole (the journal's first reply
+                # is), the base of the next update, which may not be out yet.
+                journalled = self.fetch_journal(inp.topic, first - 1, 2**31 - 1)
+                if first - 1 in journalled:
+                    try:
+                        self._decoders[inp.topic].apply(journalled.pop(first - 1))
+                    except MessageError as exc:
+                        self.log.warning("journalled %s of step %d: %s", inp.topic,
+                                         first - 1, exc)
+            else:
+                journalled = self.fetch_journal(inp.topic, first, 2**31 - 1)
+            self._buffers[name].update(journalled)
         self._first_step = step
         self.log.debug("journalled inputs: %s", {n: sorted(b) for n, b in self._buffers.items()})
         self.log.info("resumed at step %d (state rebuilt from %d journalled steps in %.2f s)",
@@ -294,7 +314,17 @@ class ModuleNode:
         """Handle every step, from ``step`` on, whose inputs are all in; returns the first step
         still waiting."""
         while not self._missing(step) and (last_step is None or step <= last_step):
-            out: StepOutput = logic.handle(step, self.spec.take(step, self._buffers))
+            inputs = self.spec.take(step, self._buffers)
+            for name, value in inputs.items():
+                topic = self.inputs[name].topic
+                if topic in self._decoders and value is not None:
+                    try:
+                        inputs[name] = self._decoders[topic].apply(value)
+                    except MessageError as exc:  # a lost message: the lockstep cannot go on
+                        raise TransportError(f"{self.name}: {self.keys.key(topic)}: {exc}; "
+                                             "restart the module to take it up again from "
+                                             "the journal") from None
+            out: StepOutput = logic.handle(step, inputs)
             for topic, value in out.messages:
                 self.publish(topic, value)
             for stage, seconds in out.stages.items():
@@ -337,7 +367,10 @@ class ModuleNode:
                 continue  # the mission holds the clock: a keep-alive, not a tick
             for name, inp in self.inputs.items():
                 if inp.topic == topic and msg_step >= step - inp.lag:
-                    self._buffers[name][msg_step] = value
+                    if topic in self._decoders:  # a journal keyframe stays (the base)
+                        self._buffers[name].setdefault(msg_step, value)
+                    else:
+                        self._buffers[name][msg_step] = value
             step = self._handle_complete(logic, step, last_step)
 
     def run(self, logic: ModuleLogic, idle_timeout_s: float, last_step: int | None = None,

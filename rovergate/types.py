@@ -194,6 +194,41 @@ class PlannerMap:
                           self.suppressed)
 
 
+_NO_RUNS = np.zeros(0, dtype=np.uint32)
+
+
+@dataclass
+class CloudUpdate:
+    """One step of an incremental map topic as it travels (``rovergate_msgs/msg/CloudUpdate``,
+    :mod:`rovergate.streams`): the cloud of ``step`` whole (a keyframe) or as what changed
+    since the publisher's cloud of ``base_step``."""
+
+    step: int
+    base_step: int
+    """-1: a keyframe (``points`` is the whole cloud); else the step of the base cloud."""
+    size: int
+    """Points of the cloud it makes."""
+    points: np.ndarray
+    """Structured points of the topic's dtype that are not copied from the base."""
+    put_at: np.ndarray = field(default_factory=lambda: _NO_RUNS)
+    """(len(points),) uint32: where each of ``points`` goes (empty on a keyframe)."""
+    copy_to: np.ndarray = field(default_factory=lambda: _NO_RUNS)
+    """(R,) uint32: the first position in the new cloud of each run copied from the base."""
+    copy_from: np.ndarray = field(default_factory=lambda: _NO_RUNS)
+    """(R,) uint32: the first point of the base of each run."""
+    copy_count: np.ndarray = field(default_factory=lambda: _NO_RUNS)
+    """(R,) uint32: the points of each run."""
+    patch_at: np.ndarray = field(default_factory=lambda: _NO_RUNS)
+    """(P,) uint32: positions whose point is copied but whose other fields change."""
+    patches: np.ndarray | None = None
+    """(P,) structured: the new values of the fields other than x, y, z at ``patch_at``
+    (None: no patch)."""
+
+    @property
+    def keyframe(self) -> bool:
+        return self.base_step < 0
+
+
 @dataclass
 class PlanPath:
     """The motion chosen for the next step, as rover base poses in ``map``."""

@@ -14,9 +14,11 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import StatusWatcher, run_cli
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from rovergate.session import free_loopback_port
+
+ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.e2e
 
@@ -59,14 +61,17 @@ def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path, la
     mission = launch("run", "--steps", "8", "--out", str(tmp_path), "--listen",
                      f"tcp/127.0.0.1:{port}")
     store = get_typestore(Stores.ROS2_HUMBLE)
+    store.register(get_types_from_msg((ROOT / "rovergate/msg/CloudUpdate.msg").read_text(),
+                                      "rovergate_msgs/msg/CloudUpdate"))
     got: list = []
     done = threading.Event()
 
     def on_sample(sample):
         schema = str(sample.encoding)
-        msg = store.deserialize_cdr(sample.payload.to_bytes(), "sensor_msgs/msg/PointCloud2")
+        msg = store.deserialize_cdr(sample.payload.to_bytes(), "rovergate_msgs/msg/CloudUpdate")
         got.append((schema, msg))
-        done.set()
+        if msg.base_step == -1:  # a keyframe: the whole map
+            done.set()
 
     # The mission's session listens before it starts any module.
     mission.wait_for_line(r"started sim \(pid")
@@ -82,10 +87,11 @@ def test_independent_subscriber_decodes_the_planner_occupancy(tmp_path: Path, la
         sub.undeclare()
         session.close()
     assert mission.finish() == 0, mission.text[-3000:]
-    schema, msg = got[0]
-    assert schema == "application/cdr;sensor_msgs/msg/PointCloud2"
+    schema, update = next((s, m) for s, m in got if m.base_step == -1)
+    assert schema == "application/cdr;rovergate_msgs/msg/CloudUpdate"
+    msg = update.points  # a sensor_msgs/PointCloud2: the whole map of its step
     assert [f.name for f in msg.fields] == ["x", "y", "z", "source", "views", "channels"]
-    assert msg.width > 1000 and msg.header.frame_id == "map"
+    assert msg.width > 1000 and msg.width == update.size and msg.header.frame_id == "map"
     xyz = np.frombuffer(msg.data.tobytes(), dtype=np.dtype(
         {"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8],
          "itemsize": msg.point_step}))

@@ -123,13 +123,14 @@ def test_a_recorder_threads_bag_has_rosbag2s_crcs_type_hashes_and_distro(tmp_pat
         assert sum(isinstance(r, Chunk) for r in StreamReader(f, emit_chunks=True).records) > 1
 
 
-def _cloud(msg) -> dict[str, np.ndarray]:
-    """A PointCloud2's fields, read from its own layout (as any ROS 2 tool would)."""
-    kinds = {2: "u1", 4: "<u2", 7: "<f4"}
-    n = msg.width * msg.height
-    raw = np.frombuffer(bytes(msg.data), np.uint8).reshape(n, msg.point_step)
-    return {f.name: raw[:, f.offset:f.offset + np.dtype(kinds[f.datatype]).itemsize]
-            .copy().view(kinds[f.datatype])[:, 0] for f in msg.fields}
+def _whole(updates) -> dict[str, np.ndarray]:
+    """The last cloud of a stream of CloudUpdates (as mcap-ros2-support decodes them), made
+    whole by the example's reader (which imports nothing of rovergate), as fields."""
+    from cloud_updates import MapStream
+    stream = MapStream()
+    done = [s for m in updates for s in stream.offer(m)]
+    assert done == [m.header.stamp.sec for m in updates]
+    return {f.name: stream.field(f.name) for f in stream.fields}
 
 
 @pytest.mark.e2e
@@ -145,14 +146,22 @@ def test_a_process_set_mission_records_every_topic_into_an_mcap_bag(tmp_path: Pa
     # A planner-facing map for every planning step, in order, decoded independently.
     maps = got[PLANNER]
     assert [m.header.stamp.sec for m in maps] == list(range(10))
-    last = _cloud(maps[-1])
+    assert maps[0].base_step == -1  # the first is whole; the others, what changed
+    assert all(m.base_step == m.header.stamp.sec - 1 for m in maps[1:])
+    last = _whole(maps)
     assert set(last) == {"x", "y", "z", "source", "views", "channels"}
     assert len(last["x"]) > 0 and set(np.unique(last["channels"])) <= {1, 2, 3}
     # The last surface is the S_T the report scores.
     metrics = read_metrics(out)
     surfaces = got[names["surface"]]
     assert [m.header.stamp.sec for m in surfaces] == list(range(11))
-    assert len(_cloud(surfaces[-1])["x"]) == metrics["observed_points"]
+    assert len(_whole(surfaces)["x"]) == metrics["observed_points"]
+    # S_t only grows: after the first (whole), each message carries its new voxels alone
+    # (and patches of the views of those seen again), not the whole surface again.
+    assert [m.base_step for m in surfaces] == [-1, *range(10)]
+    new = sum(m.points.width for m in surfaces[1:])
+    assert new == metrics["observed_points"] - surfaces[0].size
+    assert new + surfaces[0].size < 0.25 * sum(m.size for m in surfaces)
     # Each path starts where the base was when it was planned (two topics, two publishers;
     # the planner's z is its own terrain estimate).
     bases = got[names["base_pose"]]

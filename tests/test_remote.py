@@ -79,7 +79,7 @@ def test_subscriber_on_another_host_decodes_the_occupancy(tmp_path: Path):
         maps = re.findall(r"planner map step (\d+): (\d+) points \((\d+) observed", sub.stdout)
         assert len(maps) >= 3, sub.stdout
         assert all(int(n) > 0 and int(obs) == int(n) for _, n, obs in maps)  # obs condition
-        assert "application/cdr;sensor_msgs/msg/PointCloud2" in sub.stdout
+        assert "application/cdr;rovergate_msgs/msg/CloudUpdate" in sub.stdout
         assert re.search(r"surface step \d+: \d+ points", sub.stdout)
         if prefix:
             # The subscriber really was another host: its only address outside loopback is

@@ -20,7 +20,10 @@ from rosbags.typesys import Stores, get_typestore
 
 from ecosystem import ros2
 from ecosystem.replay import _await_subscriber
+from rovergate.messages import TYPESTORE, encode
 from rovergate.session import free_loopback_port
+from rovergate.streams import Wholes
+from rovergate.types import PLANNER_DTYPE
 from tests.conftest import Waiter
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
@@ -182,8 +185,17 @@ def test_a_replay_reaches_the_ros2_graph_with_its_own_sequence(launch, tmp_path:
                                  "the replayed maps on the ROS 2 key")
         assert replay.finish(60) == 0
         sub.undeclare()
-    assert [p for _, p, _ in received.samples] == maps
+    # The map travels as what changed; ROS 2 gets each step's whole map as a PointCloud2.
+    wholes = Wholes()
+    assert [p for _, p, _ in received.samples] == [
+        shown for m in maps for shown in wholes.shown("planner_map", m)]
     assert [ros2.parse_attachment(a)[0] for _, _, a in received.samples] == [1, 2, 3]
+
+
+def _one_point(i: int) -> np.ndarray:
+    cloud = np.zeros(1, dtype=PLANNER_DTYPE)
+    cloud["x"] = i
+    return cloud
 
 
 def test_a_holding_bridge_delivers_every_message_put_faster_than_it_sends():
@@ -201,15 +213,18 @@ def test_a_holding_bridge_delivers_every_message_put_faster_than_it_sends():
             # (the replay's own wait: it polls the match, as Zenoh sends no event to a Waiter)
             _await_subscriber([], [bridge.watched], 30, threading.Event())
             token = _planner_publisher_token(ros)
-            for i in range(n):
-                bridge.put("planner_map", i.to_bytes(4, "little"), 0)
+            for i in range(n):  # keyframes: each is shown as it is, whole
+                bridge.put("planner_map", encode("planner_map", (i, _one_point(i))), 0)
         finally:
             bridge.close()
         received.waiter.wait_for(lambda: len(received.samples) >= n, 60,
                                  f"the {n} maps on the ROS 2 key")
         sub.undeclare()
     assert bridge.dropped == 0
-    assert [int.from_bytes(p, "little") for _, p, _ in received.samples] == list(range(n))
+    shown = [TYPESTORE.deserialize_cdr(p, "sensor_msgs/msg/PointCloud2")
+             for _, p, _ in received.samples]
+    assert [m.header.stamp.sec for m in shown] == list(range(n))
+    assert [m.width for m in shown] == [1] * n
     attachments = [ros2.parse_attachment(a) for _, _, a in received.samples]
     assert [seq for seq, _, _ in attachments] == list(range(1, n + 1))
     # Every sample carries the GID rmw_zenoh gives the publisher of that token.

@@ -78,8 +78,14 @@ def _forged(msgtype: str, msg) -> bytes:
 @given(width=st.integers(MAX_POINTS + 1, 2**32 - 1))
 def test_a_cloud_declaring_too_many_points_is_refused_before_allocation(width):
     msg = TYPESTORE.deserialize_cdr(WIRE["surface"], TOPICS["surface"].msgtype)
-    # The data stays a few hundred bytes; only the declared size grows.
-    msg.width, msg.row_step = width, (width * msg.point_step) % 2**32
+    # The data stays a few hundred bytes; only the declared size grows: of the points the
+    # message carries, or of the cloud an update says it makes.
+    points = msg.points
+    points.width, points.row_step = width, (width * points.point_step) % 2**32
+    with pytest.raises(MessageError, match="over the limit of"):
+        decode("surface", _forged(TOPICS["surface"].msgtype, msg))
+    msg = TYPESTORE.deserialize_cdr(WIRE["surface"], TOPICS["surface"].msgtype)
+    msg.size = width
     with pytest.raises(MessageError, match="over the limit of"):
         decode("surface", _forged(TOPICS["surface"].msgtype, msg))
 

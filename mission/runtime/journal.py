@@ -28,7 +28,9 @@ import zenoh
 from rovergate.errors import ConfigError
 from rovergate.graph import journal_topics
 from rovergate.keys import Keys
+from rovergate.messages import MessageError, decode, encode
 from rovergate.node import cdr_encoding
+from rovergate.streams import INCREMENTAL, StreamDecoder, keyframe
 
 log = logging.getLogger("rovergate.mission")
 
@@ -46,11 +48,15 @@ class Entry:
 
     step: int
     payload: bytes
+    keyframe: bool = True
+    """An incremental map's message that is whole (:mod:`rovergate.streams`); every other
+    topic's message is."""
 
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS entries (
     topic TEXT NOT NULL, step INTEGER NOT NULL, payload BLOB NOT NULL,
+    keyframe INTEGER NOT NULL DEFAULT 1,
     PRIMARY KEY (topic, step)
 );
 """
@@ -75,15 +81,17 @@ class Journal:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(_SCHEMA)
-                rows = self._db.execute("SELECT topic, step, payload FROM entries").fetchall()
+                rows = self._db.execute(
+                    "SELECT topic, step, payload, keyframe FROM entries").fetchall()
             except sqlite3.DatabaseError as exc:
                 raise ConfigError(f"the mission's journal {path} is not a usable SQLite file "
                                   f"({exc}); give --out a directory this user can write (a "
                                   "mission cannot --resume without its journal: start it "
                                   "again in a new --out)") from None
-            for topic, step, payload in rows:
+            for topic, step, payload, whole in rows:
                 if topic in self._entries:
-                    self._entries[topic][int(step)] = Entry(int(step), bytes(payload))
+                    self._entries[topic][int(step)] = Entry(int(step), bytes(payload),
+                                                            bool(whole))
 
     def close(self) -> None:
         if self._db is not None:
@@ -94,36 +102,71 @@ class Journal:
     def topics(self) -> frozenset[str]:
         return KEEP_ALL | KEEP_LAST
 
-    def add(self, topic: str, step: int, payload: bytes) -> None:
-        """Record a sample. A repeated step keeps the first: replays are deterministic, so a
-        module that redoes a step sends the same bytes, and anything else sent later for a
-        step already recorded is not what the mission ran on."""
+    def add(self, topic: str, step: int, payload: bytes, keyframe: bool = True) -> None:
+        """Record a sample (``keyframe``: an incremental map's message is whole). A repeated
+        step keeps the first: replays are deterministic, so a module that redoes a step sends
+        the same bytes, and anything else sent later for a step already recorded is not what
+        the mission ran on."""
         entries = self._entries[topic]
         if step in entries:
             return
-        entries[step] = Entry(step, payload)
-        old = ([s for s in entries if s <= step - self.keep_last] if topic in KEEP_LAST
-               else [])
+        entries[step] = Entry(step, payload, keyframe)
+        horizon = step - self.keep_last  # steps up to here are no longer needed
+        if topic in INCREMENTAL:
+            # ...but an update needs the chain back to its keyframe: keep from the latest
+            # keyframe that the steps still needed are made from.
+            whole = [s for s, e in entries.items() if e.keyframe and s <= horizon + 1]
+            horizon = max(whole) - 1 if whole else -1
+        old = [s for s in entries if s <= horizon] if topic in KEEP_LAST else []
         for s in old:
             del entries[s]
         if self._db is not None:
             with self._db:
                 self._db.execute("BEGIN")
-                self._db.execute("INSERT OR IGNORE INTO entries VALUES (?, ?, ?)",
-                                 (topic, step, payload))
+                self._db.execute("INSERT OR IGNORE INTO entries VALUES (?, ?, ?, ?)",
+                                 (topic, step, payload, int(keyframe)))
                 if old:
                     self._db.execute("DELETE FROM entries WHERE topic = ? AND step <= ?",
-                                     (topic, step - self.keep_last))
+                                     (topic, horizon))
 
     def steps(self, topic: str) -> list[int]:
         """The steps of ``topic`` the journal holds, in order."""
         return sorted(self._entries.get(topic, {}))
 
     def range(self, topic: str, first: int, last: int) -> Iterator[Entry]:
-        """The samples of steps ``first..last`` (inclusive) that the journal holds, by step."""
+        """The samples of steps ``first..last`` (inclusive) that the journal holds, by step.
+        Of an incremental map, the first is a keyframe (made from the chain of updates since
+        the keyframe before it), so that a module that had none can take the rest up."""
         entries = self._entries.get(topic, {})
-        for step in sorted(s for s in entries if first <= s <= last):
+        steps = sorted(s for s in entries if first <= s <= last)
+        if topic in INCREMENTAL and steps and not entries[steps[0]].keyframe:
+            whole = self._whole(topic, steps[0])
+            if whole is None:
+                steps = steps[1:]  # nothing to make it from: not servable
+            else:
+                yield whole
+                steps = steps[1:]
+        for step in steps:
             yield entries[step]
+
+    def _whole(self, topic: str, step: int) -> Entry | None:
+        """A keyframe of ``step`` of an incremental map, or None when the journal does not
+        hold the chain back to a keyframe."""
+        entries = self._entries[topic]
+        starts = [s for s, e in entries.items() if e.keyframe and s <= step]
+        if not starts:
+            return None
+        decoder = StreamDecoder(topic)
+        try:
+            for s in range(max(starts), step + 1):
+                if s in entries:
+                    decoder.apply(decode(topic, entries[s].payload)[1])
+        except MessageError as exc:
+            log.warning("journal: cannot make %s of step %d whole: %s", topic, step, exc)
+            return None
+        if decoder.step != step or decoder.cloud is None:
+            return None
+        return Entry(step, encode(topic, keyframe(topic, (step, decoder.cloud))))
 
     def nbytes(self) -> int:
         return sum(len(e.payload) for entries in self._entries.values()

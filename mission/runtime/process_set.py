@@ -46,10 +46,11 @@ from rovergate.config import MissionConfig, save_config
 from rovergate.errors import ConfigError, MissionFailed, ReconfigurationFailed
 from rovergate.graph import LAUNCHED, MODULES, producer, stage_module
 from rovergate.keys import Keys
-from rovergate.messages import prepare
+from rovergate.messages import MessageError, prepare
 from rovergate.module import STOP
 from rovergate.node import Drops, ask_until_answered, decoding
 from rovergate.session import open_session
+from rovergate.streams import INCREMENTAL, StreamDecoder
 from rovergate.taps import tapped_topics
 from rovergate.types import MissionStatus, StepTiming
 
@@ -247,17 +248,27 @@ class ProcessSetTransport:
         # Decoded whole even where only the step is needed (the camera's depth, intrinsics
         # and pose, which the mission only journals): what the journal keeps is replayed into
         # restarted modules, so it must be valid.
+        decoder = StreamDecoder(topic) if topic in INCREMENTAL else None
+
         def callback(step: int, value: Any, sample: zenoh.Sample) -> None:
             payload = sample.payload.to_bytes()
             if self.taps:
                 self.taps.put(topic, payload)
             with self.inbox.cv:
                 if journalled:
-                    self.journal.add(topic, step, payload)
+                    self.journal.add(topic, step, payload,
+                                     keyframe=decoder is None or value.keyframe)
                 if topic == "timing":
                     # A restarted module redoes its last step: one timing per stage and step.
                     self._timings[(value.module, value.step)] = value
-                self.inbox.put(topic, step, value)
+                if decoder is None:
+                    self.inbox.put(topic, step, value)
+                else:  # an incremental map: whole again, in step order (rovergate.streams)
+                    try:
+                        for whole_step, whole in decoder.offer(value):
+                            self.inbox.put(topic, whole_step, whole)
+                    except MessageError as exc:
+                        self._drops.drop(self.keys.key(topic), exc)
                 if topic in _PROGRESS:
                     self.supervisor.mark_progress(_PROGRESS[topic], step)
         return decoding(topic, self.keys.key(topic), self._drops, callback)

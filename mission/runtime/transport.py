@@ -24,7 +24,8 @@ from rovergate.errors import MissionFailed
 from rovergate.graph import LAUNCHED, MODULES, consumers, producer
 from rovergate.messages import encode, stamped
 from rovergate.module import ModuleLogic
-from rovergate.types import MissionStatus, StepTiming
+from rovergate.streams import INCREMENTAL, StreamEncoder
+from rovergate.types import CloudUpdate, MissionStatus, StepTiming
 
 if TYPE_CHECKING:
     from rovergate.taps import Taps
@@ -99,6 +100,8 @@ def _payload(topic: str, value: Any):
     from rovergate.taps import Deferred
     arrays = [a for a in (value[1] if isinstance(value, tuple) else value.points,)
               if isinstance(a, np.ndarray)]
+    if isinstance(value, CloudUpdate):  # an incremental map's (rovergate.streams)
+        arrays = [value.points, value.put_at, value.copy_to, value.copy_from, value.copy_count]
     for a in arrays:
         a.flags.writeable = False
     return Deferred(lambda: encode(topic, value), sum(a.nbytes for a in arrays))
@@ -121,6 +124,8 @@ class InProcessTransport:
             m: {n: {} for n in MODULES[m].inputs} for m in (*LAUNCHED, "mission")}
         self._next: dict[str, int] = dict.fromkeys(LAUNCHED, 0)
         self._timings: list[StepTiming] = []
+        # The taps get the incremental maps as the process set's modules send them.
+        self._encoders = {t: StreamEncoder(t, cfg.session.keyframe_every) for t in INCREMENTAL}
 
     def start(self) -> None:
         from mission.runtime.modules import make_logic
@@ -159,7 +164,8 @@ class InProcessTransport:
 
     def _deliver(self, topic: str, value: Any) -> None:
         if self.taps:
-            self.taps.put(topic, _payload(topic, value))
+            sent = self._encoders[topic].encode(value) if topic in self._encoders else value
+            self.taps.put(topic, _payload(topic, sent))
         step, value = stamped(topic, value)
         for module, name, _ in consumers(topic):
             self._buffers[module][name][step] = value
