@@ -8,7 +8,7 @@ and encoded as the ``sensor_msgs/msg/PointCloud2`` every step used to be), with 
 The issue's bar: at most 0.5 MB a step over the last fifth of a 300-step mission.
 
 Usage: .venv/bin/python benchmarks/bench_bag.py [--steps 300] [--processes]
-           [--keyframe-every 25] [--out DIR]
+           [--keyframe-every 25] [--condition obs] [--out DIR]
 """
 
 from __future__ import annotations
@@ -66,12 +66,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--processes", action="store_true", help="run the process set")
     ap.add_argument("--keyframe-every", type=int, default=SessionConfig.keyframe_every)
+    ap.add_argument("--condition", default=MissionConfig.condition)
     ap.add_argument("--out", type=Path, default=None, help="keep the mission here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     tune_allocator()
     out = args.out or Path(tempfile.mkdtemp(prefix="bench-bag-"))
-    cfg = MissionConfig(steps=args.steps, out=out, progress=False,
+    cfg = MissionConfig(steps=args.steps, out=out, progress=False, condition=args.condition,
                         in_process=not args.processes,
                         session=SessionConfig(keyframe_every=args.keyframe_every))
     resolve_scene(cfg.scene)
@@ -80,7 +81,8 @@ def main() -> None:
     sent, whole = bag_bytes(bag)
     file_bytes = sum(p.stat().st_size for p in bag.iterdir())
     steps = args.steps
-    print(f"mission: {steps} steps, {'process set' if args.processes else 'in process'}, "
+    print(f"mission: {steps} steps, {args.condition}, "
+          f"{'process set' if args.processes else 'in process'}, "
           f"keyframe every {args.keyframe_every}; bag {file_bytes / MB:.1f} MB "
           f"({file_bytes / MB / (steps + 1):.3f} MB a step over the whole mission)")
     edges = [round(i * (steps + 1) / 5) for i in range(6)]  # steps 0..steps in fifths
