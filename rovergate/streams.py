@@ -30,19 +30,10 @@ import numpy as np
 from rovergate.config import SessionConfig
 from rovergate.graph import TOPICS
 from rovergate.messages import MAX_POINTS, MessageError, cloud_cdr, decode, patch_dtype
-from rovergate.types import (
-    PLANNER_DTYPE,
-    PREDICTED_DTYPE,
-    SURFACE_DTYPE,
-    CloudUpdate,
-    PlannerMap,
-)
+from rovergate.types import CloudUpdate, PlannerMap
 
 #: The topics that travel as :class:`rovergate.types.CloudUpdate`.
 INCREMENTAL: frozenset[str] = frozenset(n for n, t in TOPICS.items() if t.incremental)
-#: The dtype of each incremental topic's points.
-DTYPES: dict[str, np.dtype] = {"surface": SURFACE_DTYPE, "predicted": PREDICTED_DTYPE,
-                               "planner_map": PLANNER_DTYPE}
 KEYFRAME_EVERY: int = SessionConfig.keyframe_every
 """Steps between keyframes by default (``--session.keyframe-every``)."""
 
@@ -126,9 +117,8 @@ def diff(base: np.ndarray, base_step: int, new: np.ndarray, step: int) -> CloudU
     for f in others:
         changed |= _bits(base, f)[:k] != _bits(new, f)[:k]
     patch_at, put_at = [np.flatnonzero(changed)], [np.zeros(0, dtype=np.int64)]
-    to, froms, counts = [np.array([0] if k else [], dtype=np.int64)] * 2 + [
-        np.array([k] if k else [], dtype=np.int64)]
-    runs = [(to, froms, counts)]
+    prefix = np.array([0] if k else [], dtype=np.int64)
+    runs = [(prefix, prefix, prefix + k)]  # the prefix: one run, 0..k to 0..k
     if k < len(new):  # the rest, matched by hashing x, y, z
         src = np.full(len(new) - k, -1, dtype=np.int64)
         b, n = _rows(base[k:]), _rows(new[k:])

@@ -141,11 +141,9 @@ class Journal:
         steps = sorted(s for s in entries if first <= s <= last)
         if topic in INCREMENTAL and steps and not entries[steps[0]].keyframe:
             whole = self._whole(topic, steps[0])
-            if whole is None:
-                steps = steps[1:]  # nothing to make it from: not servable
-            else:
+            if whole is not None:  # (else nothing to make it from: not servable)
                 yield whole
-                steps = steps[1:]
+            steps = steps[1:]
         for step in steps:
             yield entries[step]
 
