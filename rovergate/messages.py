@@ -45,6 +45,7 @@ from rovergate.types import (
     TelemetryFrame,
     TraversabilityGrid,
     TraverseReport,
+    step_and_cloud,
 )
 
 PROJECT_TYPES = ("CloudUpdate", "MissionStatus", "ExecutionReport", "StepTiming", "TelemetryFrame",
@@ -431,8 +432,7 @@ def update_to_ros(update: CloudUpdate | tuple[int, np.ndarray] | PlannerMap) -> 
     """A :class:`rovergate.types.CloudUpdate` -> rovergate_msgs/CloudUpdate; a whole value
     (``(step, cloud)`` or a PlannerMap) is sent as a keyframe."""
     if not isinstance(update, CloudUpdate):
-        step, cloud = ((update.step, update.points) if isinstance(update, PlannerMap)
-                       else (int(update[0]), update[1]))
+        step, cloud = step_and_cloud(update)
         update = CloudUpdate(step, -1, len(cloud), cloud)
     u32 = np.uint32
     return _T[CLOUD_UPDATE](

@@ -30,7 +30,7 @@ import numpy as np
 from rovergate.config import SessionConfig
 from rovergate.graph import TOPICS
 from rovergate.messages import MAX_POINTS, MessageError, cloud_cdr, decode, patch_dtype
-from rovergate.types import CloudUpdate, PlannerMap
+from rovergate.types import CloudUpdate, PlannerMap, step_and_cloud
 
 #: The topics that travel as :class:`rovergate.types.CloudUpdate`.
 INCREMENTAL: frozenset[str] = frozenset(n for n, t in TOPICS.items() if t.incremental)
@@ -50,15 +50,6 @@ _MIX = (np.uint64(0x9E3779B97F4A7C15), np.uint64(0xC2B2AE3D27D4EB4F),
         np.uint64(0x165667B19E3779F9))
 
 
-def cloud_of(topic: str, value: Any) -> tuple[int, np.ndarray]:
-    """``(step, cloud)`` of a value a module publishes on ``topic`` (``(step, cloud)``, or a
-    :class:`rovergate.types.PlannerMap`)."""
-    if isinstance(value, PlannerMap):
-        return value.step, value.points
-    step, cloud = value
-    return int(step), cloud
-
-
 def value_of(topic: str, step: int, cloud: np.ndarray) -> Any:
     """What a reader of ``topic`` receives for ``cloud``: the array, or a PlannerMap."""
     return PlannerMap(step, cloud) if topic == "planner_map" else cloud
@@ -66,7 +57,7 @@ def value_of(topic: str, step: int, cloud: np.ndarray) -> Any:
 
 def keyframe(topic: str, value: Any) -> CloudUpdate:
     """The whole cloud of ``value`` as a keyframe."""
-    step, cloud = cloud_of(topic, value)
+    step, cloud = step_and_cloud(value)
     return CloudUpdate(step, -1, len(cloud), cloud)
 
 
@@ -215,7 +206,7 @@ class StreamEncoder:
         self._last: tuple[int, np.ndarray] | None = None
 
     def encode(self, value: Any) -> CloudUpdate:
-        step, cloud = cloud_of(self.topic, value)
+        step, cloud = step_and_cloud(value)
         last, self._last = self._last, (step, cloud)
         if last is None or step % self.keyframe_every == 0 or step <= last[0]:
             return CloudUpdate(step, -1, len(cloud), cloud)

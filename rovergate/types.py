@@ -197,6 +197,14 @@ class PlannerMap:
 _NO_RUNS = np.zeros(0, dtype=np.uint32)
 
 
+def step_and_cloud(value: tuple[int, np.ndarray] | PlannerMap) -> tuple[int, np.ndarray]:
+    """``(step, cloud)`` of a map value a module publishes: ``(step, cloud)``, or a
+    :class:`PlannerMap`."""
+    if isinstance(value, PlannerMap):
+        return value.step, value.points
+    return int(value[0]), value[1]
+
+
 @dataclass
 class CloudUpdate:
     """One step of an incremental map topic as it travels (``rovergate_msgs/msg/CloudUpdate``,

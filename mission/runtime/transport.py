@@ -101,7 +101,8 @@ def _payload(topic: str, value: Any):
     arrays = [a for a in (value[1] if isinstance(value, tuple) else value.points,)
               if isinstance(a, np.ndarray)]
     if isinstance(value, CloudUpdate):  # an incremental map's (rovergate.streams)
-        arrays = [value.points, value.put_at, value.copy_to, value.copy_from, value.copy_count]
+        arrays = [value.points, value.put_at, value.copy_to, value.copy_from, value.copy_count,
+                  value.patch_at, *([] if value.patches is None else [value.patches])]
     for a in arrays:
         a.flags.writeable = False
     return Deferred(lambda: encode(topic, value), sum(a.nbytes for a in arrays))
