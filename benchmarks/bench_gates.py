@@ -12,8 +12,14 @@ condition) and composing the map, then the filter. `learned` (no filter) is the 
 row, and the filter's own time (its frame and its test, timed inside the step) is given
 apart.
 
+With ``--blocks B`` it also prints each gate's median step in each of B equal blocks of
+steps, and the last block's over the first's: whether a gate's step grows with the mission
+(issue 30 asks that it follow what is new, not the whole map). ``--inputs FILE`` keeps the
+recorded inputs (recorded once, read again on later runs), so that two trees replay the very
+same steps: ``PYTHONPATH=OTHER_TREE`` runs this program against another tree's gate.
+
 Usage: .venv/bin/python benchmarks/bench_gates.py [--steps 60] [--rounds 3]
-           [--platform rover] [--degraded]
+           [--platform rover] [--degraded] [--blocks 5] [--inputs FILE] [--gates a,b]
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import pickle
 import statistics
 import tempfile
 import time
@@ -112,6 +119,11 @@ def main() -> None:
     ap.add_argument("--degraded", action="store_true",
                     help="blob dropout 0.1, noise 1%%, grazing 80 deg, drift 0.02 m and "
                          "0.3 deg per step")
+    ap.add_argument("--blocks", type=int, default=0,
+                    help="also print each gate's median step per block of steps")
+    ap.add_argument("--inputs", type=Path,
+                    help="the recorded inputs: read if the file exists, else recorded here")
+    ap.add_argument("--gates", help="comma-separated conditions to replay (default: all)")
     args = ap.parse_args()
     tune_allocator()
     logging.basicConfig(level=logging.WARNING)
@@ -122,8 +134,13 @@ def main() -> None:
                         sensing=sensing, progress=False,
                         out=Path(tempfile.mkdtemp(prefix="rovergate-bench-gates-")))
     resolve_scene(cfg.scene)
-    inputs, step_s = record(cfg)
-    rows = (REFERENCE, *GATES)
+    if args.inputs is not None and args.inputs.exists():
+        inputs, step_s = pickle.loads(args.inputs.read_bytes())  # our own file, just written
+    else:
+        inputs, step_s = record(cfg)
+        if args.inputs is not None:
+            args.inputs.write_bytes(pickle.dumps((inputs, step_s)))
+    rows = tuple(args.gates.split(",")) if args.gates else (REFERENCE, *GATES)
     times: dict[str, list[float]] = {g: [] for g in rows}
     own: dict[str, list[float]] = {g: [] for g in rows}
     for _ in range(args.rounds):
@@ -143,6 +160,18 @@ def main() -> None:
         held, withheld = memory[g]
         print(f"{g:12} {med:9.4f} {max(times[g]):8.4f} {100 * med / step_s:9.1f} "
               f"{filt:9.4f} {100 * filt / step_s:9.1f} {held:8.1f} {withheld:9d}")
+    if args.blocks:
+        n = len(inputs)
+        edges = [n * b // args.blocks for b in range(args.blocks + 1)]
+        print("median s per block of steps (rounds pooled):")
+        spans = zip(edges, edges[1:], strict=False)
+        print(f"{'gate':12} " + " ".join(f"{f'{lo}-{hi - 1}':>9}" for lo, hi in spans)
+              + f" {'last/first':>10}")
+        for g in rows:
+            per = [statistics.median(t for r in range(args.rounds)
+                                     for t in times[g][r * n + lo:r * n + hi])
+                   for lo, hi in zip(edges, edges[1:], strict=False)]
+            print(f"{g:12} " + " ".join(f"{m:9.4f}" for m in per) + f" {per[-1] / per[0]:10.2f}")
     print("(median s: the gate module's whole step; filter s: the filter's own frame and test "
           f"within it; {REFERENCE}: the module with no filter)")
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gate.views import extends, pixels, row_keys
+from gate.views import Frustums, block_groups, extends, pixels, row_keys
 from rovergate.geometry import project
 from rovergate.spatial import kdtree
 from rovergate.types import CameraIntrinsics
@@ -113,6 +113,18 @@ class ObservationGate:
         self._t_cam_map: list[np.ndarray] = []
         self._intrinsics: list[CameraIntrinsics] = []
         self._support = SurfaceSupport()
+        # Which blocks of points each frame may see: a frame is tested only against the
+        # points of the blocks its frustum meets (gate.views; the counts are unchanged).
+        self._frustums = Frustums(min_range_m, max_range_m)
+
+    def _near(self, points_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each frame that may see any of the points: ``(frames (F,), meets (F, N))``,
+        the frames' indices and which of the points lie in blocks each frame's frustum
+        meets (the others it cannot contain)."""
+        centres, block = block_groups(points_map)
+        meets = self._frustums.meets(centres)
+        frames = np.flatnonzero(meets.any(axis=1))
+        return frames, meets[frames][:, block]
 
     @property
     def n_frustums(self) -> int:
@@ -124,6 +136,7 @@ class ObservationGate:
         self._R_cam_map.append(R)
         self._t_cam_map.append(-R @ T_map_camera[:3, 3])
         self._intrinsics.append(intrinsics)
+        self._frustums.add(T_map_camera, intrinsics)
 
     def add_frame(self, T_map_camera: np.ndarray, intrinsics: CameraIntrinsics,
                   depth: np.ndarray, covariance: np.ndarray | None = None) -> None:
@@ -144,21 +157,24 @@ class ObservationGate:
         counts = np.zeros(len(points_map), dtype=np.int32)
         if len(points_map) == 0 or not self._R_cam_map:
             return counts
+        frames, near = self._near(points_map)
         active = np.arange(len(points_map))
-        for lo in range(0, self.n_frustums, _CHUNK_FRUSTUMS):
+        for lo in range(0, len(frames), _CHUNK_FRUSTUMS):
+            chunk = frames[lo:lo + _CHUNK_FRUSTUMS]
             if stop_at is not None:
                 active = active[counts[active] < stop_at]
-                if len(active) == 0:
-                    break
-            p = points_map[active].astype(np.float64)
-            R = np.stack(self._R_cam_map[lo:lo + _CHUNK_FRUSTUMS])     # (F, 3, 3)
-            t = np.stack(self._t_cam_map[lo:lo + _CHUNK_FRUSTUMS])     # (F, 3)
-            ks = self._intrinsics[lo:lo + _CHUNK_FRUSTUMS]
+            active_here = active[near[lo:lo + _CHUNK_FRUSTUMS][:, active].any(axis=0)]
+            if len(active_here) == 0:
+                continue
+            p = points_map[active_here].astype(np.float64)
+            R = np.stack([self._R_cam_map[f] for f in chunk])     # (F, 3, 3)
+            t = np.stack([self._t_cam_map[f] for f in chunk])     # (F, 3)
+            ks = [self._intrinsics[f] for f in chunk]
             pc = np.einsum("fij,nj->fni", R, p) + t[:, None, :]          # (F, N, 3)
             per_frame = (np.array([[getattr(k, f)] for k in ks])
                          for f in ("fx", "fy", "cx", "cy", "width", "height"))  # (F, 1) each
             inside = project(pc, *per_frame, self.min_range_m, self.max_range_m)[0]
-            counts[active] += inside.sum(axis=0, dtype=np.int32)
+            counts[active_here] += inside.sum(axis=0, dtype=np.int32)
         return counts
 
     def supported(self, points_map: np.ndarray, surface_map: np.ndarray) -> np.ndarray:
@@ -254,20 +270,25 @@ class RayGate(ObservationGate):
         """Record one acquired frame (optical-frame pose in map, its intrinsics and depth)."""
         R = T_map_camera[:3, :3].T
         self._frames.append((R, -R @ T_map_camera[:3, 3], k, self.usable_depth(depth, k)))
+        self._frustums.add(T_map_camera, k)
 
     def exposure_counts(self, points_map: np.ndarray, stop_at: int | None = None) -> np.ndarray:
         """n_ray(x): (N,) int32 frames whose ray passed through each point (class docstring);
         ``stop_at`` as in :meth:`ObservationGate.exposure_counts`. (:meth:`unsupported`, the
         support test and the shortcuts, are equation 4's own.)"""
         counts = np.zeros(len(points_map), dtype=np.int32)
+        if len(points_map) == 0:
+            return counts
         active = np.arange(len(points_map))
         p_all = np.asarray(points_map, dtype=np.float64)
-        for f in range(len(self._frames)):
+        frames, near = self._near(p_all)
+        for f, near_f in zip(frames, near, strict=True):
             if stop_at is not None:
                 active = active[counts[active] < stop_at]
             if len(active) == 0:
                 break
-            counts[active[self._passed(f, p_all[active])]] += 1
+            here = active[near_f[active]]
+            counts[here[self._passed(f, p_all[here])]] += 1
         return counts
 
     def _passed(self, f: int, points: np.ndarray) -> np.ndarray:
@@ -315,15 +336,20 @@ class PoseGate(ObservationGate):
         """Frames that expose each point under every pose of their uncertainty (class
         docstring); ``stop_at`` as in :meth:`ObservationGate.exposure_counts`."""
         counts = np.zeros(len(points_map), dtype=np.int32)
+        if len(points_map) == 0:
+            return counts
         active = np.arange(len(points_map))
         p_all = np.asarray(points_map, dtype=np.float64)
-        for R, t, k, (r, a) in zip(self._R_cam_map, self._t_cam_map, self._intrinsics,
-                                   self._reach, strict=True):
+        frames, near = self._near(p_all)  # the widened frustum lies inside the frame's own
+        for f, near_f in zip(frames, near, strict=True):
+            R, t, k, (r, a) = (self._R_cam_map[f], self._t_cam_map[f], self._intrinsics[f],
+                               self._reach[f])
             if stop_at is not None:
                 active = active[counts[active] < stop_at]
             if len(active) == 0:
                 break
-            pc = p_all[active] @ R.T + t
+            here = active[near_f[active]]
+            pc = p_all[here] @ R.T + t
             z = pc[:, 2]
             ok = (z - r >= self.min_range_m) & (z + r <= self.max_range_m)
             zs = np.where(ok, z, 1.0)
@@ -333,7 +359,7 @@ class PoseGate(ObservationGate):
             v = k.fy * pc[:, 1] / zs + k.cy
             ok &= (u >= -0.5 + mu) & (u < k.width - 0.5 - mu)
             ok &= (v >= -0.5 + mv) & (v < k.height - 0.5 - mv)
-            counts[active[ok]] += 1
+            counts[here[ok]] += 1
         return counts
 
 
@@ -371,8 +397,11 @@ class SplitGate(RayGate):
         passed through the point."""
         p = np.asarray(points_map, dtype=np.float64)
         passed = np.zeros((len(self._frames), len(p)), dtype=bool)
-        for f in range(len(self._frames)):
-            passed[f, self._passed(f, p)] = True
+        if len(p):
+            frames, near = self._near(p)
+            for f, near_f in zip(frames, near, strict=True):
+                here = np.flatnonzero(near_f)
+                passed[f, here[self._passed(f, p[here])]] = True
         out = np.zeros(len(p), dtype=bool)
         centres = np.array(self._centres).reshape(-1, 3)
         for i in np.flatnonzero(passed.sum(axis=0) >= 2):

@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from rovergate.geometry import pixels_of
+from rovergate.geometry import frustum_halfspaces, halfspaces_in_map, pixels_of
 from rovergate.types import CameraIntrinsics
 
 #: Edge of the blocks that cull primitives outside a view (metres): big enough that a view's
@@ -133,18 +133,11 @@ class GainField:
         self.weight = weight[order]
         self._primitive = np.argsort(order, kind="stable")[inverse]  # each point's primitive
         self._block_centres = (blk[order[first]] + 0.5) * BLOCK_M
-        # The view's frustum as half-spaces n . p >= b of the camera frame (unit inward normals):
-        # the range limits in z, and the side planes through the optical centre. A pixel's
-        # centre at u = fx x / z + cx is in the image for u in [-0.5, width - 0.5); the planes
-        # stand a pixel further out on every side, and a block passes while its bounding
-        # sphere (half its diagonal, and a millimetre for the rounding of the test itself)
-        # reaches into every half-space: the test only ever keeps too much.
-        sides = np.array([[k.fx, 0.0, k.cx + 1.5], [-k.fx, 0.0, k.width + 0.5 - k.cx],
-                          [0.0, k.fy, k.cy + 1.5], [0.0, -k.fy, k.height + 0.5 - k.cy]])
-        sides /= np.linalg.norm(sides, axis=1, keepdims=True)
-        self._normals = np.vstack([[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], sides])  # (6, 3)
-        radius = BLOCK_M * math.sqrt(3.0) / 2 + 1e-3
-        self._bounds = np.array([min_range_m, -max_range_m, 0.0, 0.0, 0.0, 0.0]) - radius
+        # The view's frustum as half-spaces (rovergate.geometry.frustum_halfspaces): a block
+        # passes while its bounding sphere (half its diagonal, and a millimetre for the
+        # rounding of the test itself) reaches into every one of them.
+        self._halfspaces = frustum_halfspaces(k, min_range_m, max_range_m)
+        self._radius = BLOCK_M * math.sqrt(3.0) / 2 + 1e-3
 
     def weights(self, mask: np.ndarray) -> np.ndarray:
         """(P,) int64: how many of the points in (N,) bool ``mask`` each primitive holds (the
@@ -169,12 +162,10 @@ class GainField:
 
     def _candidates(self, T_map_camera: np.ndarray) -> np.ndarray | None:
         """Sorted indices of the primitives in blocks the view may see (None: all of them)."""
-        if self.min_range_m <= 0:  # the side planes bound the frustum only in front of it
+        if self._halfspaces is None:
             return None
-        R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
-        m = R @ self._normals.T  # the half-spaces in the map frame: (p - t) . m >= b
-        d = self._block_centres @ m - (t @ m + self._bounds)
-        keep = d.min(axis=1) >= 0
+        m, off = halfspaces_in_map(T_map_camera, self._halfspaces)
+        keep = (self._block_centres @ m - off).min(axis=1) >= -self._radius
         return np.flatnonzero(np.repeat(keep, self._block_counts))
 
     def visible(self, T_map_camera: np.ndarray) -> np.ndarray:

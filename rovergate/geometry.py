@@ -111,6 +111,39 @@ def voxel_first_points(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return points[np.sort(first)]
 
 
+def voxel_centres(keys: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(N, 3) float64 centre of each voxel of :func:`voxel_keys`."""
+    mask = (1 << 21) - 1
+    idx = np.stack([(keys >> 42) & mask, (keys >> 21) & mask, keys & mask], axis=1) - _OFFSET
+    return (idx + 0.5) * voxel_m
+
+
+def frustum_halfspaces(k: CameraIntrinsics, min_range_m: float, max_range_m: float
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where :func:`project` may find a point, as half-spaces ``n . p >= b`` of the camera's
+    optical frame: ``(normals (6, 3), b (6,))``, unit inward normals. The range limits in z,
+    and the side planes through the optical centre; a pixel's centre at u = fx x / z + cx is in
+    the image for u in [-0.5, width - 0.5), and the planes stand a pixel further out on every
+    side, so a test against them only ever keeps too much. None when ``min_range_m <= 0``:
+    the side planes bound the frustum only in front of the camera."""
+    if min_range_m <= 0:
+        return None
+    sides = np.array([[k.fx, 0.0, k.cx + 1.5], [-k.fx, 0.0, k.width + 0.5 - k.cx],
+                      [0.0, k.fy, k.cy + 1.5], [0.0, -k.fy, k.height + 0.5 - k.cy]])
+    sides /= np.linalg.norm(sides, axis=1, keepdims=True)
+    normals = np.vstack([[[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], sides])
+    return normals, np.array([min_range_m, -max_range_m, 0.0, 0.0, 0.0, 0.0])
+
+
+def halfspaces_in_map(T_map_camera: np.ndarray, halfspaces: tuple[np.ndarray, np.ndarray]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`frustum_halfspaces` of a camera at ``T_map_camera``, in the map frame:
+    ``(m (3, 6), off (6,))`` with a map point inside only if ``p @ m >= off``."""
+    normals, b = halfspaces
+    m = T_map_camera[:3, :3] @ normals.T
+    return m, T_map_camera[:3, 3] @ m + b
+
+
 #: One intrinsic of a camera, or of each of a stack of frames (see :func:`project`).
 Intrinsic = float | np.ndarray
 

@@ -255,6 +255,83 @@ def test_incremental_views_equal_a_recount():
         assert np.array_equal(views.views_keyed("p", pred), views.count(pred))
 
 
+def _random_camera(rng, span_m):
+    """A camera anywhere over a ``span_m`` square, at any heading, pitched a little."""
+    T = camera_looking_along_x()
+    yaw, pitch = rng.uniform(-np.pi, np.pi), rng.uniform(-0.4, 0.4)
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    T[:3, :3] = Rz @ Ry @ T[:3, :3]
+    T[:3, 3] = [*rng.uniform(-span_m / 2, span_m / 2, 2), rng.uniform(0.5, 2.0)]
+    return T
+
+
+def test_views_counted_block_by_block_equal_every_frame_on_every_point():
+    """The frustum culling (gate.views.Frustums, Blocks) changes no count: over a region
+    much larger than a frustum, with points on block edges and cameras at any heading, the
+    counts equal those of every frame projecting every point."""
+    from gate.views import BLOCK_M, ViewCounter
+    rng = np.random.default_rng(11)
+    span = 120.0
+    views = ViewCounter(0.3, 20.0, tolerance_m=0.3)
+    frames, surface = [], np.zeros((0, 3), np.float32)
+    for step in range(25):
+        # Half the cameras near the last one (a traverse), half anywhere.
+        T = _random_camera(rng, span if step % 2 else 30.0)
+        depth = rng.uniform(3, 25, (K.height, K.width)).astype(np.float32)
+        depth[rng.uniform(size=depth.shape) < 0.1] = np.nan
+        depth[rng.uniform(size=depth.shape) < 0.1] = np.inf
+        views.add_frame(T, K, depth)
+        frames.append((T, depth))
+        new = rng.uniform([-span / 2, -span / 2, -3], [span / 2, span / 2, 5], (400, 3))
+        new[:50, :2] = np.round(new[:50, :2] / BLOCK_M) * BLOCK_M  # on the blocks' edges
+        surface = np.vstack([surface, new]).astype(np.float32)
+        expected = np.zeros(len(surface), dtype=np.int64)
+        for Tf, d in frames:
+            R = Tf[:3, :3].T
+            idx, v, u, z = pixels(surface, R, -R @ Tf[:3, 3], K, 0.3, 20.0)
+            expected[idx[d[v, u] >= z - 0.3]] += 1
+        assert np.array_equal(views.views_grown("s", surface), expected), step
+        assert np.array_equal(views.count(surface), expected), step
+    assert expected.max() >= 2 and (expected == 0).mean() > 0.5  # the case is not empty
+
+
+def test_exposures_counted_block_by_block_equal_every_frame_on_every_point():
+    """The gates test a frame only against the points in blocks its frustum meets; over a
+    region much larger than a frustum their counts equal every frame on every point."""
+    from gate.filter import PoseGate, RayGate
+    rng = np.random.default_rng(12)
+    span = 120.0
+    frustum, ray = make_gate(), RayGate(2, 0.5, 0.3, 20.0, 0.3, 80.0)
+    pose = PoseGate(2, 0.5, 0.3, 20.0, sigmas=2.0)
+    frames = []
+    for step in range(30):
+        T = _random_camera(rng, span if step % 2 else 30.0)
+        depth = rng.uniform(3, 25, (K.height, K.width)).astype(np.float32)
+        cov = np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])
+        for g in (frustum, ray, pose):
+            g.add_frame(T, K, depth, cov)
+        frames.append((T, ray._frames[-1][3]))
+    pts = rng.uniform([-span / 2, -span / 2, -3], [span / 2, span / 2, 5], (6000, 3))
+    inside = np.zeros(len(pts), np.int32)
+    passed = np.zeros(len(pts), np.int32)
+    for T, usable in frames:
+        R = T[:3, :3].T
+        idx, v, u, z = pixels(pts, R, -R @ T[:3, 3], K, 0.3, 20.0)
+        inside[idx] += 1
+        passed[idx[usable[v, u] >= z + 0.3]] += 1
+    assert np.array_equal(frustum.exposure_counts(pts), inside)
+    assert np.array_equal(ray.exposure_counts(pts), passed)
+    assert inside.max() >= 2 and passed.max() >= 2 and (inside == 0).mean() > 0.5
+    full = PoseGate(2, 0.5, 0.3, 20.0, sigmas=2.0)  # the same frames, one block for all
+    full._frustums.cull = False
+    for T, _ in frames:
+        full.add_frame(T, K, np.zeros((K.height, K.width), np.float32),
+                       np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4]))
+    assert np.array_equal(pose.exposure_counts(pts), full.exposure_counts(pts))
+
+
 def test_everything_the_planner_gets_lies_in_the_scored_region():
     ref = np.array([[0, 0, 0], [5, 5, 0]], dtype=np.float32)
     surface = np.array([[0, 0, 0.05], [12, 0, 0]], dtype=np.float32)     # one outside
