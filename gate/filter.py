@@ -117,14 +117,15 @@ class ObservationGate:
         # points of the blocks its frustum meets (gate.views; the counts are unchanged).
         self._frustums = Frustums(min_range_m, max_range_m)
 
-    def _near(self, points_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For each frame that may see any of the points: ``(frames (F,), meets (F, N))``,
-        the frames' indices and which of the points lie in blocks each frame's frustum
-        meets (the others it cannot contain)."""
+    def _near(self, points_map: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For each frame that may see any of the points: ``(frames (F,), meets (F, B),
+        block (N,))``, the frames' indices, which blocks each frame's frustum meets, and each
+        point's block (a frame cannot contain a point outside the blocks it meets). Kept per
+        block, not per point: F x N would be tens of megabytes late in a mission."""
         centres, block = block_groups(points_map)
         meets = self._frustums.meets(centres)
         frames = np.flatnonzero(meets.any(axis=1))
-        return frames, meets[frames][:, block]
+        return frames, meets[frames], block
 
     @property
     def n_frustums(self) -> int:
@@ -157,13 +158,14 @@ class ObservationGate:
         counts = np.zeros(len(points_map), dtype=np.int32)
         if len(points_map) == 0 or not self._R_cam_map:
             return counts
-        frames, near = self._near(points_map)
+        frames, meets, block = self._near(points_map)
         active = np.arange(len(points_map))
         for lo in range(0, len(frames), _CHUNK_FRUSTUMS):
             chunk = frames[lo:lo + _CHUNK_FRUSTUMS]
             if stop_at is not None:
                 active = active[counts[active] < stop_at]
-            active_here = active[near[lo:lo + _CHUNK_FRUSTUMS][:, active].any(axis=0)]
+            reached = meets[lo:lo + _CHUNK_FRUSTUMS].any(axis=0)
+            active_here = active[reached[block[active]]]
             if len(active_here) == 0:
                 continue
             p = points_map[active_here].astype(np.float64)
@@ -281,13 +283,13 @@ class RayGate(ObservationGate):
             return counts
         active = np.arange(len(points_map))
         p_all = np.asarray(points_map, dtype=np.float64)
-        frames, near = self._near(p_all)
-        for f, near_f in zip(frames, near, strict=True):
+        frames, meets, block = self._near(p_all)
+        for f, meets_f in zip(frames, meets, strict=True):
             if stop_at is not None:
                 active = active[counts[active] < stop_at]
             if len(active) == 0:
                 break
-            here = active[near_f[active]]
+            here = active[meets_f[block[active]]]
             counts[here[self._passed(f, p_all[here])]] += 1
         return counts
 
@@ -340,15 +342,15 @@ class PoseGate(ObservationGate):
             return counts
         active = np.arange(len(points_map))
         p_all = np.asarray(points_map, dtype=np.float64)
-        frames, near = self._near(p_all)  # the widened frustum lies inside the frame's own
-        for f, near_f in zip(frames, near, strict=True):
+        frames, meets, block = self._near(p_all)  # a widened frustum lies inside the own
+        for f, meets_f in zip(frames, meets, strict=True):
             R, t, k, (r, a) = (self._R_cam_map[f], self._t_cam_map[f], self._intrinsics[f],
                                self._reach[f])
             if stop_at is not None:
                 active = active[counts[active] < stop_at]
             if len(active) == 0:
                 break
-            here = active[near_f[active]]
+            here = active[meets_f[block[active]]]
             pc = p_all[here] @ R.T + t
             z = pc[:, 2]
             ok = (z - r >= self.min_range_m) & (z + r <= self.max_range_m)
@@ -398,9 +400,9 @@ class SplitGate(RayGate):
         p = np.asarray(points_map, dtype=np.float64)
         passed = np.zeros((len(self._frames), len(p)), dtype=bool)
         if len(p):
-            frames, near = self._near(p)
-            for f, near_f in zip(frames, near, strict=True):
-                here = np.flatnonzero(near_f)
+            frames, meets, block = self._near(p)
+            for f, meets_f in zip(frames, meets, strict=True):
+                here = np.flatnonzero(meets_f[block])
                 passed[f, here[self._passed(f, p[here])]] = True
         out = np.zeros(len(p), dtype=bool)
         centres = np.array(self._centres).reshape(-1, 3)
