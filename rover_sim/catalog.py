@@ -38,7 +38,8 @@ START_FLYER_CLEARANCE_M = 0.2
 class CatalogEntry:
     build: Callable[[], Scene]
     kind: str
-    """'procedural' or 'mesh' (a file shipped with pybullet_data)."""
+    """'procedural' (the evaluation suite), 'heightmap', 'large' (long missions: not in the
+    suite) or 'mesh' (a file shipped with pybullet_data)."""
 
 
 def _pybullet_mesh(name: str, filename: str, up_axis: str) -> Callable[[], Scene]:
@@ -62,6 +63,7 @@ SCENES: dict[str, CatalogEntry] = {
     "monastery": CatalogEntry(_pybullet_mesh("monastery", "samurai_monastry.obj", "y"), "mesh"),
     "pb_terrain": CatalogEntry(_pybullet_mesh("pb_terrain", "terrain.obj", "z"), "mesh"),
     "pb_heightmap": CatalogEntry(suite.build_pb_heightmap, "heightmap"),
+    "long_traverse": CatalogEntry(suite.build_long_traverse, "large"),
 }
 
 #: The evaluation suite: the procedural scenes every study runs on by default.

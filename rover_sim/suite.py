@@ -444,3 +444,37 @@ def build_pb_heightmap(metres_per_pixel: float = 0.1, relief_m: float = 6.0) -> 
     scene = Scene("pb_heightmap", xs, xs.copy(), Z, [], (0, 0, 0, 0, 0, 0),
                   description="pybullet_data heightmap wm_height_out.png: eroded valleys")
     return _finish(scene, [], X, Y)
+
+
+#: The long-traverse scene's box of interest (half-edge) and terrain cell: large enough that a
+#: rover keeps finding new ground for thousands of steps (issue 30's soak).
+TRAVERSE_HALF_ROI_M = 120.0
+TRAVERSE_CELL_M = 1.0
+
+
+def build_long_traverse(seed: int = 21) -> Scene:
+    """A 240 m x 240 m plain for long missions: gentle rolling ground (hills tens of metres
+    across) and 600 rocks, on 1 m terrain cells reaching 10 m beyond the box of interest.
+
+    Not in the evaluation suite: at this size the suite's fractional tolerances (tau, epsilon
+    and delta are fractions of d_scene, 340 m here) are metres wide, so a mission on it sets
+    them in absolute terms (``benchmarks/bench_long.py`` does).
+    """
+    rng = np.random.default_rng(seed)
+    half = TRAVERSE_HALF_ROI_M + 10.0
+    xs = np.arange(-half, half + 1e-9, TRAVERSE_CELL_M)
+    X, Y = np.meshgrid(xs, xs)
+    Z = 1.5 * np.sin(X / 18.0 + 0.4) * np.cos(Y / 24.0 - 0.3)
+    for _ in range(40):
+        cx, cy = rng.uniform(-half, half, 2)
+        amp, sig = rng.uniform(-1.0, 1.0), rng.uniform(6.0, 14.0)
+        Z += amp * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * sig**2))
+    scene = Scene("long_traverse", xs, xs.copy(), Z, [], (0, 0, 0, 0, 0, 0),
+                  description="a 240 m plain: rolling ground and 600 rocks (long missions)")
+    starts = {"a": (0.0, 0.0, 0.0), "b": (60.0, 40.0, np.pi), "c": (-70.0, 10.0, np.pi / 2),
+              "d": (40.0, -80.0, np.pi / 2), "e": (-20.0, 90.0, -np.pi / 2)}
+    keep = [(x, y, 3.0) for x, y, _ in starts.values()]
+    objects: list[trimesh.Trimesh] = []
+    edge = TRAVERSE_HALF_ROI_M - 2.0
+    _scatter_rocks(rng, scene, objects, 600, (0.3, 1.2), keep, area=(-edge, -edge, edge, edge))
+    return _finish(scene, objects, X, Y, starts, TRAVERSE_HALF_ROI_M, TRAVERSE_HALF_ROI_M)

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from rover_sim.bullet import pb
 from rover_sim.scene import Scene
@@ -73,11 +74,32 @@ def add_scene(client: int, scene: Scene) -> None:
     mission of the suite's scenes, which a study worker running hundreds of missions kept for
     good. Read from a file, the meshes render to the same depth, to the bit (a test checks)."""
     for mesh, rgba in scene.visual_meshes:
-        if len(mesh.faces):
+        for part in _pieces(mesh):
             vis = pb.createVisualShape(pb.GEOM_MESH,
-                                       fileName=str(mesh_file(mesh.vertices, mesh.faces)),
+                                       fileName=str(mesh_file(part.vertices, part.faces)),
                                        rgbaColor=rgba, physicsClientId=client)
             pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, physicsClientId=client)
+
+
+#: Faces per pybullet visual shape: pybullet takes at most 524,288 indices (three a face) in
+#: one mesh and drops the rest, so a larger mesh (a long-traverse terrain, its hundreds of
+#: rocks) goes in as several shapes. The suite's scenes are one shape each, as before.
+MAX_SHAPE_FACES = 150_000
+
+
+def _pieces(mesh: trimesh.Trimesh) -> list[trimesh.Trimesh]:
+    """The mesh in consecutive runs of at most MAX_SHAPE_FACES faces, each with only the
+    vertices its faces use (none when the mesh has no face)."""
+    n = len(mesh.faces)
+    if n <= MAX_SHAPE_FACES:
+        return [mesh] if n else []
+    out = []
+    for lo in range(0, n, MAX_SHAPE_FACES):
+        faces = np.asarray(mesh.faces[lo:lo + MAX_SHAPE_FACES])
+        used, inverse = np.unique(faces, return_inverse=True)
+        out.append(trimesh.Trimesh(np.asarray(mesh.vertices)[used], inverse.reshape(-1, 3),
+                                   process=False))
+    return out
 
 
 @dataclass(frozen=True)

@@ -119,3 +119,37 @@ def test_the_scene_renders_the_same_from_files_and_worlds_do_not_accumulate():
         sizes.append(sum(isinstance(o, list) for o in gc.get_objects()))
     # From lists pybullet kept about 11,700 of them a world (arch_field's vertices).
     assert sizes[-1] - sizes[3] < 100, sizes
+
+
+def test_a_mesh_over_pybullets_index_limit_goes_in_as_pieces_that_render_the_same(
+        monkeypatch):
+    # pybullet drops the indices of one mesh beyond 524,288 (a long traverse's terrain and
+    # rocks come near it): add_scene gives it a large mesh in runs of faces. Here the runs are
+    # made small, so that arch_field's own meshes go in as many pieces; the depth is the same.
+    from rover_sim import world
+    from rover_sim.bullet import pb
+    from rover_sim.world import _pieces, add_scene
+    scene = build_arch_field()
+
+    def depths():
+        c = pb.connect(pb.DIRECT)
+        add_scene(c, scene)
+        rng = np.random.default_rng(2)
+        out = []
+        for _ in range(4):
+            eye = [rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(1, 4)]
+            view = pb.computeViewMatrix(eye, [eye[0] + 3, eye[1] - 1, 0.0], [0, 0, 1],
+                                        physicsClientId=c)
+            proj = pb.computeProjectionMatrixFOV(60, 4 / 3, 0.05, 30, physicsClientId=c)
+            out.append(np.asarray(pb.getCameraImage(
+                160, 120, view, proj, renderer=pb.ER_TINY_RENDERER, physicsClientId=c)[3]))
+        pb.disconnect(c)
+        return np.stack(out)
+
+    whole = depths()
+    monkeypatch.setattr(world, "MAX_SHAPE_FACES", 1000)
+    terrain = scene.terrain
+    pieces = _pieces(terrain)
+    assert len(pieces) == -(-len(terrain.faces) // 1000)
+    assert np.array_equal(np.concatenate([p.triangles for p in pieces]), terrain.triangles)
+    assert np.array_equal(depths(), whole)
