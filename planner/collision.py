@@ -107,6 +107,10 @@ def box_pool(edge: float) -> _BoxPool:
     return pool
 
 
+#: The ground grid reaches this far beyond the box it is given on every side.
+GRID_MARGIN_M = 5.0
+
+
 class OccupancyCollisionModel:
     """FCL model of one step's planner-facing occupancy."""
 
@@ -131,7 +135,7 @@ class OccupancyCollisionModel:
         self.cell = ground_cell_m
         self.fallback_ground_z = fallback_ground_z
         xmin, ymin, _, xmax, ymax, _ = bounds_m
-        margin = 5.0
+        margin = GRID_MARGIN_M
         self.origin = np.array([xmin - margin, ymin - margin])
         self._ox, self._oy = float(self.origin[0]), float(self.origin[1])
         self.shape = (int(np.ceil((ymax - ymin + 2 * margin) / ground_cell_m)) + 1,

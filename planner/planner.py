@@ -52,13 +52,20 @@ class PlanResult:
     """Goal poses of the candidates tried and found infeasible, in the order tried."""
 
 
+#: What a planner rendered in a step: the map it was given, the gain field it built, and the
+#: indices in that map's points of the field's points (those near the vehicle that serve
+#: the gain).
+Rendered = tuple[PlannerMap, GainField, np.ndarray]
+
+
 class Planner(abc.ABC):
     """Base class of planners; see the module docstring for the contract."""
 
     def __init__(self, cfg: MissionConfig) -> None:
         self.cfg = cfg
-        self.rendered: tuple[PlannerMap, GainField] | None = None
-        """The map and the gain field of the latest step (:func:`counted_points` reads it)."""
+        self.rendered: Rendered | None = None
+        """The map, the gain field and the indices in the map of the field's points, of the
+        latest step (:func:`counted_points` reads it)."""
 
     @abc.abstractmethod
     def plan(self, step: int, occupancy: PlannerMap, T_map_base: Pose,
@@ -76,10 +83,15 @@ class Planner(abc.ABC):
         """One step's motion model, random generator (seeded by seed and step) and gain field,
         all read from the same planner-facing map."""
         cfg, pc = self.cfg, self.cfg.planner
+        # The map near the vehicle only (--planner.local-half-m): what a step's views and
+        # motions can reach, so that the step's cost does not grow with a long traverse's map.
+        local, kept = occupancy.within(float(T_map_base.position[0]),
+                                       float(T_map_base.position[1]), pc.local_half_m)
         # Each use of the map sees the points that serve it (gated-split keeps apart what
         # attracts and what blocks; every other condition gives both all of its points).
-        blocking = occupancy.serving(Channel.COLLISION)
-        attracting = occupancy.serving(Channel.GAIN)
+        blocking = local.serving(Channel.COLLISION)
+        gain_at = np.flatnonzero((local.points["channels"] & Channel.GAIN) != 0)
+        attracting = PlannerMap(local.step, local.points[gain_at], local.suppressed)
         model = motion_model(cfg, xyz(blocking.points), T_map_base,
                              predicted=blocking.points["source"] == Source.PREDICTED, free=free,
                              contacts=contacts, terrain=terrain)
@@ -87,20 +99,21 @@ class Planner(abc.ABC):
         rng = np.random.default_rng([cfg.seed, step])
         field = gain_field(cfg, xyz(attracting.points),
                            novel_mask(attracting, pc.observed_min_views))
-        self.rendered = (occupancy, field)
+        self.rendered = (occupancy, field, gain_at if kept is None else kept[gain_at])
         return model, rng, field
 
 
 def counted_points(cfg: MissionConfig, occupancy: PlannerMap, goal: Pose,
-                   rendered: tuple[PlannerMap, GainField] | None = None) -> np.ndarray:
+                   rendered: Rendered | None = None) -> np.ndarray:
     """(K,) uint32 indices into ``occupancy.points`` of the points the gain of the view from
     ``goal`` (a base pose) counts: the novel points, among those serving the gain, of the
-    primitives that view sees. ``rendered``: the map and gain field the planner built this
-    step (:meth:`Planner._setup`), read when it is of this map; else the field is built."""
-    serving = np.flatnonzero((occupancy.points["channels"] & Channel.GAIN) != 0)
+    primitives that view sees. ``rendered``: the map, gain field and field points' indices
+    the planner built this step (:meth:`Planner._setup`), read when it is of this map; else
+    the field is built from every point serving the gain."""
     if rendered is not None and rendered[0] is occupancy:
-        field = rendered[1]
+        field, serving = rendered[1], rendered[2]
     else:
+        serving = np.flatnonzero((occupancy.points["channels"] & Channel.GAIN) != 0)
         attracting = occupancy.serving(Channel.GAIN)
         field = gain_field(cfg, xyz(attracting.points),
                            novel_mask(attracting, cfg.planner.observed_min_views))

@@ -23,14 +23,20 @@ interest, the region of every map it is given (:func:`rovergate.geometry.in_regi
 from __future__ import annotations
 
 import abc
+import math
 
 import numpy as np
 
-from planner.collision import BODY_MARGIN_M, FlyerCollisionModel, OccupancyCollisionModel
+from planner.collision import (
+    BODY_MARGIN_M,
+    GRID_MARGIN_M,
+    FlyerCollisionModel,
+    OccupancyCollisionModel,
+)
 from planner.freespace import FreeSpace
 from planner.motion import plan_r3, plan_se2
 from planner.traversability import BELLY, TerrainMap
-from rovergate.config import MissionConfig, RoverConfig
+from rovergate.config import LOCAL_INSET_M, MissionConfig, RoverConfig
 from rovergate.geometry import camera_from_base
 from rovergate.types import Pose
 
@@ -52,6 +58,10 @@ SAMPLE_OVERDRAW = 4
 #: How far inside the altitude band a flyer that left it returns (the band's edges move with
 #: the ground the map estimates, by a few centimetres a step).
 BAND_INSET_M = 0.1
+#: How far inside the planner's local window the collision model's grid ends: its own 5 m
+#: margin and the snap of its corner to the ground cells (under a cell) stay within the
+#: window's points. The states it may plan through stay LOCAL_INSET_M inside.
+LOCAL_GRID_INSET_M = GRID_MARGIN_M + 1.0
 
 
 class MotionModel(abc.ABC):
@@ -63,7 +73,8 @@ class MotionModel(abc.ABC):
         self.cfg = cfg
         self.points = points
         self.contacts = np.zeros((0, 3)) if contacts is None else np.asarray(contacts)
-        b = cfg.scene.bounds_m
+        self._centre = (float(T_map_base.position[0]), float(T_map_base.position[1]))
+        b = local_bounds(cfg, *self._centre)
         self.ground = OccupancyCollisionModel(points, cfg.rover, b, cfg.planner.ground_cell_m,
                                               cfg.planner.obstacle_voxel_m,
                                               fallback_ground_z=self._fallback_ground(T_map_base),
@@ -136,7 +147,12 @@ class MotionModel(abc.ABC):
         widened to hold the current position (a start nearer the edge can still leave)."""
         b, r = self.cfg.scene.bounds_m, self.reach_m + 0.1
         x, y = self.current[0], self.current[1]
-        return (min(b[0] + r, x), min(b[1] + r, y), max(b[3] - r, x), max(b[4] - r, y))
+        box = (min(b[0] + r, x), min(b[1] + r, y), max(b[3] - r, x), max(b[4] - r, y))
+        # ...and cut to the planner's local window, where this step's map is whole.
+        w = self.cfg.planner.local_half_m - LOCAL_INSET_M
+        cx, cy = self._centre
+        return (max(box[0], min(cx - w, x)), max(box[1], min(cy - w, y)),
+                min(box[2], max(cx + w, x)), min(box[3], max(cy + w, y)))
 
     def _fallback_ground(self, T: Pose) -> float:
         return float(T.position[2])
@@ -201,6 +217,22 @@ class MotionModel(abc.ABC):
     def length(states: list[State]) -> float:
         p = np.array([s[: 3 if len(s) == 5 else 2] for s in states])
         return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+
+
+def local_bounds(cfg: MissionConfig, x: float, y: float) -> tuple[float, ...]:
+    """The scene's box of interest cut to the part of the planner's local window around
+    (x, y) that the collision model's grid covers: ``LOCAL_GRID_INSET_M`` inside the window,
+    so that the grid's own margin stays within the window's points, and its low corner on
+    the lattice of the whole box's ground cells (the same cells wherever the window stands).
+    A box that fits in the window is returned as it is."""
+    b, cell = cfg.scene.bounds_m, cfg.planner.ground_cell_m
+    w = cfg.planner.local_half_m - LOCAL_GRID_INSET_M
+    lo = [b[0], b[1]]
+    for i, c in enumerate((x, y)):
+        if c - w > b[i]:
+            lo[i] = b[i] + math.floor((c - w - b[i]) / cell) * cell
+    hi = [b[3] if x + w >= b[3] else x + w, b[4] if y + w >= b[4] else y + w]
+    return (lo[0], lo[1], b[2], max(hi[0], lo[0]), max(hi[1], lo[1]), b[5])
 
 
 def flyer_altitudes(cfg: MissionConfig) -> tuple[float, float]:

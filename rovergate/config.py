@@ -312,6 +312,12 @@ class GateConfig:
         return self.oracle_delta_frac * d_scene_m
 
 
+#: How far inside the planner's local window (``--planner.local-half-m``) the states it may
+#: plan through stay: the collision model's ground cells, its plane fits and the body around
+#: a state all lie within the window's points (planner/platforms.py).
+LOCAL_INSET_M = 10.0
+
+
 @dataclass
 class PlannerConfig:
     """Next-best-view selection and motion planning."""
@@ -354,6 +360,13 @@ class PlannerConfig:
     the budget (at most max_attempts such motions a step). Off by default: on the rover it
     helps some scenes and hurts others (docs/roadmap.md), and on the flyer it would change
     the published study's runs."""
+    local_half_m: float = 50.0
+    """Half-side of the square around the vehicle in which the planner reads the map each step
+    (its gain, its collision model and the states it may plan through), so that a step costs
+    what lies near the vehicle, not the whole map of a long traverse. It must reach the views
+    of a step (max_step_m plus the sensor's max_range_m) with margins (planner/platforms.py,
+    LOCAL_*); the default covers the whole of any box of interest up to 40 m across from
+    anywhere in it, so the suite's missions are the same as with the whole map."""
     ompl_max_checks: int = 3000
     """State-validity checks one OMPL query may spend (a count, not a time, for determinism)."""
     known_free_only: bool = True
@@ -582,6 +595,12 @@ def check_values(cfg: MissionConfig) -> None:
     if not cfg.sensor.max_range_m > cfg.sensor.min_range_m:
         raise ConfigError(f"--sensor.max-range-m ({cfg.sensor.max_range_m}) must exceed "
                           f"--sensor.min-range-m ({cfg.sensor.min_range_m})")
+    reach = (cfg.planner.beam_depth * cfg.planner.max_step_m + cfg.sensor.max_range_m
+             + LOCAL_INSET_M)
+    if cfg.planner.local_half_m < reach:
+        raise ConfigError(f"--planner.local-half-m ({cfg.planner.local_half_m}) must reach a "
+                          f"step's views: at least beam-depth x max-step-m + "
+                          f"sensor.max-range-m + {LOCAL_INSET_M:g} = {reach:g}")
     if not 0 <= cfg.viz_port <= 65535:
         raise ConfigError(f"--viz-port must be a TCP port (0 to 65535; 0: any free one), got "
                           f"{cfg.viz_port}")

@@ -193,6 +193,17 @@ class PlannerMap:
         return PlannerMap(self.step, self.points[(self.points["channels"] & channel) != 0],
                           self.suppressed)
 
+    def within(self, x: float, y: float, half_m: float) -> tuple[PlannerMap, np.ndarray | None]:
+        """The map's points in the square of half-side ``half_m`` around (x, y), and their
+        indices in :attr:`points` (None, and the map itself, when it holds every point)."""
+        p = self.points
+        keep = ((np.abs(p["x"] - np.float32(x)) <= half_m)
+                & (np.abs(p["y"] - np.float32(y)) <= half_m))
+        if keep.all():
+            return self, None
+        index = np.flatnonzero(keep)
+        return PlannerMap(self.step, p[index], self.suppressed), index
+
 
 _NO_RUNS = np.zeros(0, dtype=np.uint32)
 

@@ -369,3 +369,75 @@ def test_collision_boxes_are_reused_not_made_anew_each_step():
         gc.collect()
     # After the first few steps (the pool's high-water mark), nothing more is made.
     assert pool.made <= first * 1.5, (first, pool.made)
+
+
+def _rolling_site(half_m, seed=3, spacing=0.4):
+    """A synthetic map over a square of half-side ``half_m``: rolling ground sampled every
+    ``spacing`` metres and rock-like blocks standing on it."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(-half_m, half_m, spacing)
+    X, Y = np.meshgrid(g, g)
+    Z = 0.8 * np.sin(X / 7.0) * np.cos(Y / 9.0)
+    pts = [np.c_[X.ravel(), Y.ravel(), Z.ravel()]]
+    for cx, cy in rng.uniform(-half_m + 2, half_m - 2, (int(half_m * half_m / 40), 2)):
+        z0 = 0.8 * np.sin(cx / 7.0) * np.cos(cy / 9.0)
+        pts.append(box_points(cx, cy, z0, z0 + rng.uniform(0.2, 1.2), half=0.3))
+    return np.vstack(pts).astype(np.float32)
+
+
+def _site_map(pts, seed=4):
+    rng = np.random.default_rng(seed)
+    return PlannerMap(0, make_cloud(pts, PLANNER_DTYPE, views=rng.integers(0, 4, len(pts))))
+
+
+def test_the_local_window_sees_what_the_whole_map_shows_near_the_vehicle():
+    # A 200 m map: the planner reads the 100 m square around the rover. Every view a step can
+    # take (within the beam's reach) renders the same gain, and every state it may plan
+    # through is judged the same, as on the whole map.
+    from planner.planner import gain_field
+    from planner.platforms import motion_model
+    from rovergate.geometry import camera_from_base
+    cfg = MissionConfig()
+    cfg.scene.bounds_m = (-100.0, -100.0, -2.0, 100.0, 100.0, 3.0)
+    occ = _site_map(_rolling_site(100.0))
+    here = Pose.from_xyz_yaw(31.3, -17.9, 0.0, 0.4)
+    local, kept = occ.within(31.3, -17.9, cfg.planner.local_half_m)
+    assert kept is not None and 0.2 < len(kept) / len(occ.points) < 0.3
+    whole_field = gain_field(cfg, np.c_[occ.points["x"], occ.points["y"], occ.points["z"]],
+                             novel_mask(occ, 2))
+    pts = np.c_[local.points["x"], local.points["y"], local.points["z"]]
+    field = gain_field(cfg, pts, novel_mask(local, 2))
+    rng = np.random.default_rng(0)
+    reach = cfg.planner.beam_depth * cfg.planner.max_step_m
+    for x, y, yaw in np.c_[rng.uniform(-reach, reach, (40, 2)) + [31.3, -17.9],
+                           rng.uniform(-np.pi, np.pi, 40)]:
+        camera = camera_from_base(Pose.from_xyz_yaw(x, y, 0.0, yaw).matrix(), cfg.sensor,
+                                  cfg.platform)
+        assert field.gain(field.visible(camera)) == whole_field.gain(whole_field.visible(camera))
+    big = MissionConfig()
+    big.scene.bounds_m = cfg.scene.bounds_m
+    big.planner.local_half_m = 1000.0  # the whole map
+    near = motion_model(cfg, pts, here)
+    whole = motion_model(big, np.c_[occ.points["x"], occ.points["y"], occ.points["z"]], here)
+    box = near.inner_box()
+    assert box[2] - box[0] == pytest.approx(2 * (cfg.planner.local_half_m - 10.0))
+    states = np.c_[rng.uniform(box[0], box[2], 300), rng.uniform(box[1], box[3], 300),
+                   rng.uniform(-np.pi, np.pi, 300)]
+    free = [near.is_free(tuple(s)) for s in states]
+    assert free == [whole.is_free(tuple(s)) for s in states]
+    assert 0 < sum(free) < len(free)  # both kinds of state were judged
+
+
+@pytest.mark.parametrize("planner", [GreedyPlanner, BeamPlanner])
+def test_a_box_of_interest_40_m_across_is_planned_on_its_whole_map(planner):
+    # The default window covers such a box from anywhere in it: a rover at its corner, with
+    # the map reaching 15 m beyond the box as a camera sees, plans as with no window at all.
+    pts = _rolling_site(35.0, seed=8)
+    outcomes = []
+    for half in (50.0, 1000.0):
+        cfg = MissionConfig()
+        cfg.scene.bounds_m = (-20.0, -20.0, -2.0, 20.0, 20.0, 3.0)
+        cfg.planner.local_half_m = half
+        result = planner(cfg).plan(3, _site_map(pts), Pose.from_xyz_yaw(19.0, 18.5, 0.0, 2.5))
+        outcomes.append([(p.position.tolist(), p.yaw) for p in result.path.poses])
+    assert outcomes[0] == outcomes[1]
