@@ -199,7 +199,12 @@ def best_feasible(cfg: MissionConfig, step: int, model: MotionModel, field: Gain
                      dtype=np.int64)
     here = np.array(model.current[:cfg.vehicle.dims])
     travel = np.array([np.linalg.norm(np.array(c[:len(here)]) - here) for c in candidates])
-    order = np.lexsort((travel, -gains, model.avoid(candidates)))
+    if gains.max() < pc.explore_below:
+        # Nothing left to see within reach (a long traverse's seen ground): away from every
+        # place the platform stood instead, the farthest first, towards ground not yet seen.
+        order = np.lexsort((-model.away(candidates), model.avoid(candidates)))
+    else:
+        order = np.lexsort((travel, -gains, model.avoid(candidates)))
     attempts = len(order) if model.stale([model.current])[0] else pc.max_attempts
     for k, i in enumerate(order[:attempts]):
         goal = candidates[i]

@@ -122,6 +122,12 @@ class MotionModel(abc.ABC):
         rover's; none on the flyer), else 0."""
         return np.zeros(len(states), dtype=np.int64)
 
+    def away(self, states: list[State]) -> np.ndarray:
+        """(N,) float: each candidate state's distance in the plane from the nearest place
+        the platform stood at a step boundary (the rover's, from its traversability layer;
+        zeros on the flyer): how far a move there takes it from where it has been."""
+        return np.zeros(len(states))
+
     def backout(self, start: State) -> list[State]:
         """The rover's way back along where it came from (checked by its traversability
         layer only), from ``start``; empty where there is none (and on the flyer)."""
@@ -343,6 +349,13 @@ class RoverModel(MotionModel):
         xy = np.array([s[:2] for s in states], dtype=np.float64)
         d = np.linalg.norm(xy[:, None, :] - spots[None], axis=2).min(axis=1)
         return d < self.cfg.traverse.dither_radius_m
+
+    def away(self, states: list[State]) -> np.ndarray:
+        if self.terrain is None or not self.terrain.visited or not len(states):
+            return np.zeros(len(states))
+        spots = np.asarray(self.terrain.visited, dtype=np.float64).reshape(-1, 2)
+        xy = np.array([s[:2] for s in states], dtype=np.float64)
+        return np.sqrt(((xy[:, None, :] - spots[None]) ** 2).sum(axis=2).min(axis=1))
 
     def revisit(self, states: list[State]) -> np.ndarray:
         t = self.cfg.traverse

@@ -39,9 +39,10 @@ class SessionConfig:
     """Before declaring itself ready, wait until this many peers are linked (`rovergate run`
     starts its modules as clients with 1: linked to the mission's session)."""
     keyframe_every: int = 25
-    """The incremental maps (S_t, the prediction, the planner map) are sent whole every this
-    many steps and as what changed in between (rovergate/streams.py): a subscriber that joins
-    late waits at most this many steps for the whole map."""
+    """The incremental maps (S_t, the prediction, the planner map) travel as what changed, and
+    whole at a multiple of this many steps once the changes since the last whole map add up
+    to its size (rovergate/streams.py): a subscriber that joins late waits that long for the
+    whole map (25 steps in a 30 m box; a long traverse's map, hundreds of steps)."""
 
 
 @dataclass
@@ -360,6 +361,13 @@ class PlannerConfig:
     the budget (at most max_attempts such motions a step). Off by default: on the rover it
     helps some scenes and hurts others (docs/roadmap.md), and on the flyer it would change
     the published study's runs."""
+    explore_below: int = 0
+    """When no candidate's rendered gain reaches this many points, the planner tries them
+    farthest from every place the rover stood first (the greedy choice and the beam's first
+    motion; planner/planner.py, best_feasible), so that a rover whose surroundings are all
+    seen heads for ground it has not seen rather than dithering on the nearest candidate.
+    0 (the default) turns it off: the published studies ran without it, and in a 30 m box the
+    gain vanishes only once the box is covered. The soak (benchmarks/bench_long.py) uses 50."""
     local_half_m: float = 50.0
     """Half-side of the square around the vehicle in which the planner reads the map each step
     (its gain, its collision model and the states it may plan through), so that a step costs
@@ -557,6 +565,7 @@ def check_values(cfg: MissionConfig) -> None:
             ("--planner.beam-depth", cfg.planner.beam_depth, 1),
             ("--planner.max-attempts", cfg.planner.max_attempts, 1),
             ("--planner.ompl-max-checks", cfg.planner.ompl_max_checks, 1),
+            ("--planner.explore-below", cfg.planner.explore_below, 0),
             ("--hazcam.width-px", cfg.hazcam.width_px, 8),
             ("--hazcam.height-px", cfg.hazcam.height_px, 8),
             ("--traverse.backout-steps", cfg.traverse.backout_steps, 0),

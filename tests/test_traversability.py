@@ -331,6 +331,30 @@ def test_a_dithering_rover_tries_somewhere_else_first():
         sim.close()
 
 
+def test_a_rover_with_nothing_left_to_see_heads_away_from_where_it_has_been():
+    # --planner.explore-below: no candidate has gain, so the rover that came from -x goes
+    # on away from its trail (where it has not looked yet), not to the nearest candidate.
+    cfg, sim = built("flat")
+    try:
+        trail = sensed(cfg, sim, [(x, 0.0, 0.0) for x in (-3.0, -2.0, -1.0, 0.0)])
+        cloud = make_cloud(floor_and(np.zeros((0, 3)))[0], PLANNER_DTYPE,
+                           source=Source.OBSERVED, views=5)  # nothing novel: no gain anywhere
+        here = Pose.from_xyz_yaw(0, 0, 0, 0)
+
+        def goal(explore_below: int) -> np.ndarray:
+            cfg.planner.explore_below = explore_below
+            result = GreedyPlanner(cfg).plan(4, PlannerMap(4, cloud), here, terrain=trail)
+            assert result.reason == "best-feasible" and result.gain == 0
+            return result.path.poses[-1].position[:2]
+        nearest, onwards = goal(0), goal(1)
+        model = RoverModel(cfg, xyz(cloud), here, terrain=trail)
+        away = model.away([(*nearest, 0.0), (*onwards, 0.0)])
+        assert np.linalg.norm(nearest) < 1.0 and away[0] < 1.0
+        assert away[1] > 1.5 and onwards[0] > 1.0  # ahead, beyond where it stood
+    finally:
+        sim.close()
+
+
 def test_densify_keeps_spacing_and_turn_limits():
     poses = densify_se2([(0.0, 0.0, 0.0), (1.0, 0.0, np.pi / 2)], 0.1, np.radians(5))
     xy = np.array([p[:2] for p in poses])
