@@ -7,9 +7,13 @@ the ones in sight go up), and the prediction moves by a few hundred voxels. On t
 the journal and in the bag each of them travels as ``rovergate_msgs/msg/CloudUpdate``
 (:class:`rovergate.types.CloudUpdate`):
 
-- a **keyframe** (``base_step`` -1) carries the whole cloud. A publisher sends one every
-  ``keyframe_every`` steps (steps that are multiples of it), as its first message (a
-  restarted module's too), and when the change would be larger than the cloud;
+- a **keyframe** (``base_step`` -1) carries the whole cloud. A publisher sends one as its
+  first message (a restarted module's too), when the change would be larger than the cloud,
+  and at a step that is a multiple of ``keyframe_every`` once the updates it sent since its
+  last keyframe add up to the cloud's size (:meth:`StreamEncoder.encode`): in a 30 m box
+  that is every 25 steps, and on a long traverse, where the map grows to millions of points
+  and a step changes a few thousand, keyframes grow rarer as the map grows, so that they
+  never cost more bytes than the updates do;
 - an **update** of step t names the step of the publisher's previous message and carries the
   runs of points copied from that cloud, in order, plus the points that are new or changed,
   each with its position. Applied to the base, it gives the publisher's cloud bit for bit
@@ -18,7 +22,7 @@ the journal and in the bag each of them travels as ``rovergate_msgs/msg/CloudUpd
 A reader keeps the last cloud of each topic (:class:`StreamDecoder`) and applies each
 message in step order; one that joins late (a remote subscriber, the live view, a replay
 started mid-bag) waits for the next keyframe, and a restarted module gets a keyframe of the
-step it resumes at from the mission's journal.
+step it resumes at from the mission's journal (its first reply is whole, whatever was sent).
 """
 
 from __future__ import annotations
@@ -200,17 +204,40 @@ def apply(base: np.ndarray | None, update: CloudUpdate) -> np.ndarray:
 class StreamEncoder:
     """A publisher's side of one incremental topic: each step's value -> a CloudUpdate."""
 
-    def __init__(self, topic: str, keyframe_every: int = KEYFRAME_EVERY) -> None:
+    def __init__(self, topic: str, keyframe_every: int = KEYFRAME_EVERY,
+                 share: float = 1.0) -> None:
+        """``share``: a keyframe is due at a multiple of ``keyframe_every`` once the updates
+        since the last one add up to this share of the cloud's size (0: at every multiple)."""
         self.topic = topic
         self.keyframe_every = max(1, int(keyframe_every))
+        self.share = share
         self._last: tuple[int, np.ndarray] | None = None
+        self._since = 0
+        """Bytes of the updates sent since the last keyframe."""
 
     def encode(self, value: Any) -> CloudUpdate:
+        """The message of ``value``'s step: a keyframe as its first, after a step that did
+        not come before it, and at a multiple of ``keyframe_every`` once the updates since
+        the last keyframe add up to the cloud's own size (so that keyframes cost at most what
+        the updates do, however large the map: in a 30 m box every 25 steps, on a long
+        traverse's map of millions of points hundreds of steps apart); else an update."""
         step, cloud = step_and_cloud(value)
         last, self._last = self._last, (step, cloud)
-        if last is None or step % self.keyframe_every == 0 or step <= last[0]:
+        if (last is None or step <= last[0]
+                or (step % self.keyframe_every == 0
+                    and self._since >= self.share * cloud.nbytes)):
+            self._since = 0
             return CloudUpdate(step, -1, len(cloud), cloud)
-        return diff(last[1], last[0], cloud, step)
+        update = diff(last[1], last[0], cloud, step)
+        self._since = 0 if update.keyframe else self._since + update_nbytes(update)
+        return update
+
+
+def update_nbytes(update: CloudUpdate) -> int:
+    """The bytes of an update's arrays (what it costs beside its fixed fields)."""
+    return sum(a.nbytes for a in (update.points, update.put_at, update.copy_to,
+                                  update.copy_from, update.copy_count, update.patch_at,
+                                  update.patches))
 
 
 class StreamDecoder:

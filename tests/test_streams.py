@@ -85,13 +85,36 @@ def test_a_change_as_large_as_the_cloud_goes_whole():
 
 def test_the_encoder_sends_keyframes_first_at_every_kth_step_and_on_a_redo():
     rng = np.random.default_rng(3)
-    encoder = StreamEncoder("surface", keyframe_every=4)
+    encoder = StreamEncoder("surface", keyframe_every=4, share=0)
     cloud = _surface(rng, 100)
     kinds = []
     for step in [1, 2, 3, 4, 5, 6, 6, 7]:  # the second 6: a restarted module redoing it
         cloud = np.concatenate([cloud, _surface(rng, 5)])
         kinds.append(encoder.encode((step, cloud)).keyframe)
     assert kinds == [True, False, False, True, False, False, True, False]
+
+
+def test_keyframes_cost_no_more_than_the_updates_however_large_the_map():
+    # A map of 20,000 points of which a step sees 2,000 again and adds 20 (a long traverse's,
+    # in small): a keyframe comes at a multiple of 4 once the updates since the last add up
+    # to the cloud, so the bytes of keyframes per step stay under those of the updates.
+    rng = np.random.default_rng(9)
+    encoder = StreamEncoder("surface", keyframe_every=4)
+    cloud = _surface(rng, 20_000)
+    keyframes, updates, at = 0, 0, []
+    for step in range(1, 601):
+        cloud = np.concatenate([cloud, _surface(rng, 20)])
+        cloud["views"][rng.choice(len(cloud), 2_000, replace=False)] += 1
+        u = encoder.encode((step, cloud))
+        if u.keyframe:
+            keyframes += cloud.nbytes
+            at.append(step)
+        else:
+            updates += len(encode("surface", u))
+    assert at[0] == 1 and all(s % 4 == 0 for s in at[1:]) and len(at) > 2
+    assert keyframes - 20_020 * 14 <= 1.1 * updates  # the first keyframe aside
+    gaps = np.diff(at[1:])
+    assert gaps[-1] > gaps[0]  # rarer as the map grows
 
 
 def test_a_planner_map_stream_gives_planner_maps_back():
@@ -114,7 +137,7 @@ def test_a_reader_without_the_base_refuses_and_a_keyframe_takes_it_up():
     clouds = [_surface(rng, 100)]
     for _ in range(4):
         clouds.append(np.concatenate([clouds[-1], _surface(rng, 10)]))
-    encoder = StreamEncoder("surface", keyframe_every=3)
+    encoder = StreamEncoder("surface", keyframe_every=3, share=0)
     updates = [encoder.encode((s, c)) for s, c in enumerate(clouds, start=1)]
     assert [u.keyframe for u in updates] == [True, False, True, False, False]
     late = StreamDecoder("surface")
@@ -163,7 +186,7 @@ def test_a_forged_update_is_refused_or_makes_exactly_its_cloud(data):
 
 def test_wholes_show_an_incremental_map_as_pointcloud2_from_its_first_keyframe():
     rng = np.random.default_rng(7)
-    encoder = StreamEncoder("surface", keyframe_every=2)
+    encoder = StreamEncoder("surface", keyframe_every=2, share=0)
     clouds, payloads = [_surface(rng, 30)], []
     for step in range(1, 6):
         clouds.append(np.concatenate([clouds[-1], _surface(rng, 3)]))
@@ -181,7 +204,7 @@ def test_wholes_show_an_incremental_map_as_pointcloud2_from_its_first_keyframe()
 
 def test_the_journal_serves_a_whole_cloud_and_keeps_the_chain_to_its_keyframe(tmp_path):
     rng = np.random.default_rng(8)
-    encoder = StreamEncoder("surface", keyframe_every=5)
+    encoder = StreamEncoder("surface", keyframe_every=5, share=0)
     journal = Journal(keep_last=3, path=tmp_path / "journal.sqlite")
     clouds = {}
     cloud = _surface(rng, 40)
