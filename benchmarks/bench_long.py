@@ -2,8 +2,10 @@
 
 Runs a ``--steps`` (2,000) rover mission on ``long_traverse`` (a 240 m plain, 600 rocks;
 ``obs`` by default, ``--condition``), with the suite's absolute tolerances (tau 0.21 m,
-epsilon and delta 1.28 m: the scene's d_scene is 340 m, so the fractions are set from those),
-twice:
+epsilon and delta 1.28 m: the scene's d_scene is 340 m, so the fractions are set from those)
+and ``--planner.explore-below 50`` (``--explore-below``: a rover whose surroundings are all
+seen heads away from where it has been; without it, it dithers once they are, and the soak
+would measure a rover standing still), twice:
 
 - **in process**, in a child of this program (``run_in_process``): each step's end time, the
   process's resident memory and the bag's size, as the step ends;
@@ -52,7 +54,8 @@ def mission_flags(args: argparse.Namespace, d_scene_m: float) -> list[str]:
     eps = f"{EPSILON_M / d_scene_m:.6g}"
     return ["--scene.name", SCENE, "--start", "a", "--steps", str(args.steps),
             "--condition", args.condition, "--eval.tau-frac", f"{TAU_M / d_scene_m:.6g}",
-            "--gate.epsilon-frac", eps, "--gate.oracle-delta-frac", eps, "--no-progress"]
+            "--gate.epsilon-frac", eps, "--gate.oracle-delta-frac", eps, "--no-progress",
+            "--planner.explore-below", str(args.explore_below)]
 
 
 def rss_mb(pid: int) -> float | None:
@@ -134,8 +137,10 @@ def child_in_process(out: Path, flags: list[str]) -> None:
                                          descendants(os.getpid()).items()}},
                               "bag": size(*out.glob("bag*"))}) + "\n")
         log.flush()
-    write_report(cfg, run_in_process(cfg, on_step), out)
+    record = run_in_process(cfg, on_step)
+    write_report(cfg, record, out)
     log.close()
+    (out / "stages.json").write_text(json.dumps(record.stage_s))
 
 
 def run_in_process_child(out: Path, flags: list[str]) -> list[dict]:
@@ -324,6 +329,9 @@ def main() -> None:
                     help="SIGKILL the process set's mission manager at this step (0: never)")
     ap.add_argument("--block", type=int, default=100)
     ap.add_argument("--condition", default="obs")
+    ap.add_argument("--explore-below", type=int, default=50,
+                    help="--planner.explore-below: where nothing is left to see within reach, "
+                         "the rover heads away from where it has been (0: off)")
     ap.add_argument("--modes", default="in-process,processes")
     ap.add_argument("--out", type=Path, default=None,
                     help="where the missions go (default: a new temporary directory)")
@@ -364,6 +372,14 @@ def main() -> None:
             print(f"mission manager SIGKILLed after the tick of step {info['killed_after']}: "
                   f"`--resume` ran the loop again at step {info['resumed_at']} "
                   f"{info['resume_s']:.1f} s after it started (target: under 10 s)")
+        stages = out / "stages.json"
+        if stages.exists():  # in process: where a step's time went, block by block
+            per = json.loads(stages.read_text())
+            print("median s per stage: " + "; ".join(
+                f"{name} " + " ".join(f"{statistics.median(v[lo:lo + args.block]):.3f}"
+                                      for lo in range(0, len(v), args.block * 4))
+                for name, v in sorted(per.items()) if v)
+                  + f" (every {args.block * 4} steps)")
     if len(coverage) == 2:
         same = coverage["in-process"] == coverage["processes"]
         print(f"\nper-step coverage, process set (killed and resumed) against in process: "
