@@ -235,9 +235,9 @@ class StreamEncoder:
 
 def update_nbytes(update: CloudUpdate) -> int:
     """The bytes of an update's arrays (what it costs beside its fixed fields)."""
-    return sum(a.nbytes for a in (update.points, update.put_at, update.copy_to,
-                                  update.copy_from, update.copy_count, update.patch_at,
-                                  update.patches))
+    arrays = (update.points, update.put_at, update.copy_to, update.copy_from,
+              update.copy_count, update.patch_at, update.patches)
+    return sum(int(a.nbytes) for a in arrays if a is not None)
 
 
 class StreamDecoder:
