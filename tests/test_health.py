@@ -30,6 +30,26 @@ def test_journal_keeps_every_step_of_replay_topics_and_the_last_of_bulky_ones():
     assert list(j.range("depth", 7, 9)) == []
 
 
+def test_a_journal_with_a_file_holds_every_steps_samples_there_not_in_memory(tmp_path: Path):
+    # 300 steps of a 100 kB depth image: 30 MB served, while the journal's memory stays
+    # flat (a 2,000-step mission journals some 350 MB of such samples).
+    import tracemalloc
+    j = Journal(keep_last=2, path=tmp_path / "journal.sqlite")
+    tracemalloc.start()
+    try:
+        for step in range(300):
+            j.add("depth", step, bytes([step % 256]) * 100_000)
+        held, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert held < 2_000_000, held
+    served = list(j.range("depth", 0, 299))
+    assert [e.step for e in served] == list(range(300))
+    assert all(e.payload == bytes([e.step % 256]) * 100_000 for e in served)
+    assert j.nbytes() == 300 * 100_000
+    j.close()
+
+
 def test_the_journal_file_holds_what_the_journal_held(tmp_path: Path):
     """Written through as samples come: a journal opened again on the file (a restarted
     mission manager's) serves the same samples, bulky topics trimmed as in memory."""

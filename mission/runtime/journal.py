@@ -81,8 +81,10 @@ class Journal:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(_SCHEMA)
+                held = sorted(KEEP_LAST | (KEEP_ALL & INCREMENTAL))
                 rows = self._db.execute(
-                    "SELECT topic, step, payload, keyframe FROM entries").fetchall()
+                    "SELECT topic, step, CASE WHEN topic IN (%s) THEN payload ELSE x'' END, "
+                    "keyframe FROM entries" % ",".join("?" * len(held)), held).fetchall()
             except sqlite3.DatabaseError as exc:
                 raise ConfigError(f"the mission's journal {path} is not a usable SQLite file "
                                   f"({exc}); give --out a directory this user can write (a "
@@ -90,8 +92,14 @@ class Journal:
                                   "again in a new --out)") from None
             for topic, step, payload, whole in rows:
                 if topic in self._entries:
-                    self._entries[topic][int(step)] = Entry(int(step), bytes(payload),
-                                                            bool(whole))
+                    self._entries[topic][int(step)] = Entry(
+                        int(step), b"" if self._on_disk(topic) else bytes(payload), bool(whole))
+
+    def _on_disk(self, topic: str) -> bool:
+        """Whether ``topic``'s payloads are read from the file rather than held: those of
+        every step (KEEP_ALL, a depth image and more a step) when there is a file, so that
+        the mission manager's memory does not grow with the mission's length."""
+        return self._db is not None and topic in KEEP_ALL and topic not in INCREMENTAL
 
     def close(self) -> None:
         if self._db is not None:
@@ -110,7 +118,7 @@ class Journal:
         entries = self._entries[topic]
         if step in entries:
             return
-        entries[step] = Entry(step, payload, keyframe)
+        entries[step] = Entry(step, b"" if self._on_disk(topic) else payload, keyframe)
         horizon = step - self.keep_last  # steps up to here are no longer needed
         if topic in INCREMENTAL:
             # ...but an update needs the chain back to its keyframe: keep from the latest
@@ -144,6 +152,14 @@ class Journal:
             if whole is not None:  # (else nothing to make it from: not servable)
                 yield whole
             steps = steps[1:]
+        if self._on_disk(topic) and steps:
+            assert self._db is not None
+            rows = self._db.execute(
+                "SELECT step, payload FROM entries WHERE topic = ? AND step BETWEEN ? AND ? "
+                "ORDER BY step", (topic, steps[0], steps[-1]))
+            for step, payload in rows:
+                yield Entry(int(step), bytes(payload), entries[int(step)].keyframe)
+            return
         for step in steps:
             yield entries[step]
 
@@ -167,8 +183,15 @@ class Journal:
         return Entry(step, encode(topic, keyframe(topic, (step, decoder.cloud))))
 
     def nbytes(self) -> int:
-        return sum(len(e.payload) for entries in self._entries.values()
+        """Bytes of the payloads journalled (held, and in the file only)."""
+        held = sum(len(e.payload) for entries in self._entries.values()
                    for e in entries.values())
+        if self._db is None:
+            return held
+        disk = [t for t in self._entries if self._on_disk(t)]
+        row = self._db.execute("SELECT COALESCE(SUM(LENGTH(payload)), 0) FROM entries WHERE "
+                               "topic IN (%s)" % ",".join("?" * len(disk)), disk).fetchone()
+        return held + int(row[0])
 
 
 class JournalServer:
