@@ -37,6 +37,36 @@ def test_voxel_surface_appends_and_counts_views():
     np.testing.assert_array_equal(s.points[0], a[0])  # the first point of a voxel stays
 
 
+def test_voxel_surface_is_a_first_point_per_voxel_over_many_frames_and_merges():
+    # Against the plain definition, a dict of voxel -> (first point, frames that saw it):
+    # hundreds of overlapping frames, so the index's recent keys merge into its main run
+    # many times; the points come out in the order voxels were first seen.
+    from rovergate.geometry import voxel_keys
+    rng = np.random.default_rng(11)
+    s = VoxelSurface(voxel_m=0.5)
+    first: dict[int, int] = {}
+    points: list[np.ndarray] = []
+    views: list[int] = []
+    for frame in range(300):
+        centre = rng.uniform(-2, 2, 3) + [0.3 * frame, 0, 0]  # a camera moving on
+        pts = (centre + rng.normal(0, 2.0, (int(rng.integers(0, 400)), 3))).astype(np.float32)
+        new = s.integrate(pts)
+        made = 0
+        keys = voxel_keys(pts, 0.5) if len(pts) else np.zeros(0, dtype=np.int64)
+        for key in dict.fromkeys(keys.tolist()):  # each voxel once a frame
+            if key in first:
+                views[first[key]] += 1
+            else:
+                first[key] = len(points)
+                points.append(pts[int(np.flatnonzero(keys == key)[0])])
+                views.append(1)
+                made += 1
+        assert new == made
+    assert len(s) == len(points) > 5_000
+    np.testing.assert_array_equal(s.points, np.array(points))
+    assert s.views.tolist() == views
+
+
 def test_voxel_first_points_keeps_order():
     pts = np.array([[0.1, 0, 0], [3.2, 0, 0], [0.3, 0, 0]], dtype=np.float32)
     assert voxel_first_points(pts, 1.0).tolist() == pts[:2].tolist()
