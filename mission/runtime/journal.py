@@ -82,9 +82,10 @@ class Journal:
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(_SCHEMA)
                 held = sorted(KEEP_LAST | (KEEP_ALL & INCREMENTAL))
+                marks = ",".join("?" * len(held))
                 rows = self._db.execute(
-                    "SELECT topic, step, CASE WHEN topic IN (%s) THEN payload ELSE x'' END, "
-                    "keyframe FROM entries" % ",".join("?" * len(held)), held).fetchall()
+                    f"SELECT topic, step, CASE WHEN topic IN ({marks}) THEN payload ELSE x'' "
+                    "END, keyframe FROM entries", held).fetchall()
             except sqlite3.DatabaseError as exc:
                 raise ConfigError(f"the mission's journal {path} is not a usable SQLite file "
                                   f"({exc}); give --out a directory this user can write (a "
@@ -189,8 +190,9 @@ class Journal:
         if self._db is None:
             return held
         disk = [t for t in self._entries if self._on_disk(t)]
+        marks = ",".join("?" * len(disk))
         row = self._db.execute("SELECT COALESCE(SUM(LENGTH(payload)), 0) FROM entries WHERE "
-                               "topic IN (%s)" % ",".join("?" * len(disk)), disk).fetchone()
+                               f"topic IN ({marks})", disk).fetchone()
         return held + int(row[0])
 
 
