@@ -74,6 +74,25 @@ def test_executing_a_path_moves_the_rover(sim):
     assert report.min_clearance_m > 0
 
 
+def _depths(load, scene, seed: int, n: int) -> np.ndarray:
+    """(n, 120, 160) depth buffers of ``scene`` put into a fresh world by ``load(client,
+    scene)``, from ``n`` random eyes."""
+    from rover_sim.bullet import pb
+    c = pb.connect(pb.DIRECT)
+    load(c, scene)
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        eye = [rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(1, 4)]
+        view = pb.computeViewMatrix(eye, [eye[0] + 3, eye[1] - 1, 0.0], [0, 0, 1],
+                                    physicsClientId=c)
+        proj = pb.computeProjectionMatrixFOV(60, 4 / 3, 0.05, 30, physicsClientId=c)
+        out.append(np.asarray(pb.getCameraImage(
+            160, 120, view, proj, renderer=pb.ER_TINY_RENDERER, physicsClientId=c)[3]))
+    pb.disconnect(c)
+    return np.stack(out)
+
+
 def test_the_scene_renders_the_same_from_files_and_worlds_do_not_accumulate():
     """pybullet keeps every vertex list it is given; the scene goes in as OBJ files instead,
     and renders to the same depth, to the bit, as from lists. Worlds made and closed one
@@ -92,22 +111,7 @@ def test_the_scene_renders_the_same_from_files_and_worlds_do_not_accumulate():
                 pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis,
                                    physicsClientId=client)
 
-    def depths(load):
-        c = pb.connect(pb.DIRECT)
-        load(c, scene)
-        rng = np.random.default_rng(1)
-        out = []
-        for _ in range(6):
-            eye = [rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(1, 4)]
-            view = pb.computeViewMatrix(eye, [eye[0] + 3, eye[1] - 1, 0.0], [0, 0, 1],
-                                        physicsClientId=c)
-            proj = pb.computeProjectionMatrixFOV(60, 4 / 3, 0.05, 30, physicsClientId=c)
-            out.append(np.asarray(pb.getCameraImage(
-                160, 120, view, proj, renderer=pb.ER_TINY_RENDERER, physicsClientId=c)[3]))
-        pb.disconnect(c)
-        return np.stack(out)
-
-    assert np.array_equal(depths(add_scene), depths(from_lists))
+    assert np.array_equal(_depths(add_scene, scene, 1, 6), _depths(from_lists, scene, 1, 6))
 
     import gc
     sizes = []
@@ -127,29 +131,13 @@ def test_a_mesh_over_pybullets_index_limit_goes_in_as_pieces_that_render_the_sam
     # rocks come near it): add_scene gives it a large mesh in runs of faces. Here the runs are
     # made small, so that arch_field's own meshes go in as many pieces; the depth is the same.
     from rover_sim import world
-    from rover_sim.bullet import pb
     from rover_sim.world import _pieces, add_scene
     scene = build_arch_field()
 
-    def depths():
-        c = pb.connect(pb.DIRECT)
-        add_scene(c, scene)
-        rng = np.random.default_rng(2)
-        out = []
-        for _ in range(4):
-            eye = [rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(1, 4)]
-            view = pb.computeViewMatrix(eye, [eye[0] + 3, eye[1] - 1, 0.0], [0, 0, 1],
-                                        physicsClientId=c)
-            proj = pb.computeProjectionMatrixFOV(60, 4 / 3, 0.05, 30, physicsClientId=c)
-            out.append(np.asarray(pb.getCameraImage(
-                160, 120, view, proj, renderer=pb.ER_TINY_RENDERER, physicsClientId=c)[3]))
-        pb.disconnect(c)
-        return np.stack(out)
-
-    whole = depths()
+    whole = _depths(add_scene, scene, 2, 4)
     monkeypatch.setattr(world, "MAX_SHAPE_FACES", 1000)
     terrain = scene.terrain
     pieces = _pieces(terrain)
     assert len(pieces) == -(-len(terrain.faces) // 1000)
     assert np.array_equal(np.concatenate([p.triangles for p in pieces]), terrain.triangles)
-    assert np.array_equal(depths(), whole)
+    assert np.array_equal(_depths(add_scene, scene, 2, 4), whole)
