@@ -363,9 +363,10 @@ class PlannerConfig:
     the published study's runs."""
     explore_below: int = 0
     """When no candidate's rendered gain reaches this many points, the planner tries them
-    farthest from every place the rover stood first (the greedy choice and the beam's first
-    motion; planner/planner.py, best_feasible), so that a rover whose surroundings are all
-    seen heads for ground it has not seen rather than dithering on the nearest candidate.
+    farthest from every place the rover stood first (the greedy planner's choice, and the
+    beam's when it falls back to it; planner/planner.py, best_feasible), so that a rover whose
+    surroundings are all seen heads for ground it has not seen rather than dithering on the
+    nearest candidate.
     0 (the default) turns it off: the published studies ran without it, and in a 30 m box the
     gain vanishes only once the box is covered. The soak (benchmarks/bench_long.py) uses 50."""
     local_half_m: float = 50.0
