@@ -129,9 +129,19 @@ def child_in_process(out: Path, flags: list[str]) -> None:
     cfg = tyro.cli(MissionConfig, args=[*flags, "--in-process", "--out", str(out)])
     check_runnable(cfg)  # (resolves the scene)
     log = (out / "steps.jsonl").open("w")
+    from mapper.mapper import Mapper
+    surface = {"points": 0}  # the size of S_t after each step (the map memory grows with)
+    mapper_step = Mapper.step
+
+    def counted_step(self, frame):
+        result = mapper_step(self, frame)
+        surface["points"] = len(self.surface)
+        return result
+    Mapper.step = counted_step  # type: ignore[method-assign]
 
     def on_step(t: int, coverage: float) -> None:
         log.write(json.dumps({"step": t, "t": time.perf_counter(), "coverage": coverage,
+                              "surface": surface["points"],
                               "rss": {"in-process": rss_mb(os.getpid()),
                                       **{n: rss_mb(p) for n, p in
                                          descendants(os.getpid()).items()}},
@@ -268,8 +278,9 @@ def report(name: str, rows: list[dict], coverage: list[float], n_truth: int, blo
     dt = {s: by_step[s]["t"] - by_step[s - 1]["t"] for s in steps if s - 1 in by_step
           and not (kill is not None and s - 1 <= kill < s + 1)}
     procs = sorted({n for r in rows for n in r["rss"] if n.split("-")[0] != "python3"})
-    cols = ["steps", "median s", "new/step"] + [f"{p} MB" for p in procs] + \
-        ["wire kB/st", "bag kB/st", "ckpt B/st"]
+    mapped = any("surface" in r for r in rows)
+    cols = ["steps", "median s", "new/step"] + (["S_t points"] if mapped else []) + \
+        [f"{p} MB" for p in procs] + ["wire kB/st", "bag kB/st", "ckpt B/st"]
     print(f"\n{name}: per {block}-step block (new/step: true-surface samples of {n_truth:,} "
           "newly covered per step; memory at the block's end)")
     print(" | ".join(cols))
@@ -298,7 +309,9 @@ def report(name: str, rows: list[dict], coverage: list[float], n_truth: int, blo
 
         def fmt(v, scale=1.0, digits=1):
             return "-" if v is None else f"{v / scale:.{digits}f}"
+        row["surface"] = b.get("surface")
         print(" | ".join([f"{lo - 1}-{hi - 1}", f"{row['median']:.3f}", f"{new:.0f}",
+                          *([f"{b['surface']:,}"] if mapped else []),
                           *[fmt(row[p], 1, 0) for p in procs], fmt(row["wire"], 1e3),
                           fmt(row["bag"], 1e3), fmt(row["checkpoint"], 1, 0)]))
     slopes = {k: slope_per_1000(mids, [r[k] for r in table])
@@ -307,6 +320,15 @@ def report(name: str, rows: list[dict], coverage: list[float], n_truth: int, blo
         f"{k} {v:+.3g}" + (" s" if k == "median" else " MB" if k in procs else
                           " B/step" if k in ("wire", "bag", "checkpoint") else "")
         for k, v in slopes.items() if np.isfinite(v)))
+    if mapped and len(table) > 2:  # memory against the map: MB per million points of S_t
+        for p in procs:
+            pts = [r["surface"] for r in table if r.get(p) is not None]
+            mem = [r[p] for r in table if r.get(p) is not None]
+            if len(pts) > 2 and pts[-1] > pts[0]:
+                fit = np.polyfit(np.array(pts) / 1e6, mem, 1)
+                resid = np.array(mem) - np.polyval(fit, np.array(pts) / 1e6)
+                print(f"{p}: {fit[0]:.0f} MB per million points of S_t (+{fit[1]:.0f} MB; "
+                      f"residual within {np.abs(resid).max():.0f} MB)")
     # The comparison: the last block against the second (steps 100-200 of 2,000).
     early = [dt[s] for s in range(block + 1, 2 * block + 1) if s in dt]
     late = [dt[s] for s in range(last - block + 1, last + 1) if s in dt]
