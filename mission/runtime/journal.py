@@ -81,7 +81,7 @@ class Journal:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.executescript(_SCHEMA)
-                held = sorted(KEEP_LAST | (KEEP_ALL & INCREMENTAL))
+                held = sorted(t for t in self._entries if not self._on_disk(t))
                 marks = ",".join("?" * len(held))
                 rows = self._db.execute(
                     f"SELECT topic, step, CASE WHEN topic IN ({marks}) THEN payload ELSE x'' "
@@ -190,6 +190,8 @@ class Journal:
         if self._db is None:
             return held
         disk = [t for t in self._entries if self._on_disk(t)]
+        if not disk:
+            return held
         marks = ",".join("?" * len(disk))
         row = self._db.execute("SELECT COALESCE(SUM(LENGTH(payload)), 0) FROM entries WHERE "
                                f"topic IN ({marks})", disk).fetchone()
